@@ -1,0 +1,1 @@
+"""The asyncio orchestration: control loop, rider commands, safety, service integration."""

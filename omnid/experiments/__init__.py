@@ -1,0 +1,1 @@
+"""Reproductions of the thesis' experiments (chapter 7) as functions returning tables."""
