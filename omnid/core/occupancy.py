@@ -84,10 +84,9 @@ class OccupancyGrid:
         """x (nx,) and y (ny,) of the cell centres, mm."""
         s = self.settings
         nx, ny = self.states.shape
-        return (
-            s.x_min_mm + (np.arange(nx) + 0.5) * s.resolution_mm,
-            s.y_min_mm + (np.arange(ny) + 0.5) * s.resolution_mm,
-        )
+        xs = s.x_min_mm + (np.arange(nx, dtype=np.float64) + 0.5) * s.resolution_mm
+        ys = s.y_min_mm + (np.arange(ny, dtype=np.float64) + 0.5) * s.resolution_mm
+        return xs.astype(np.float64), ys.astype(np.float64)
 
     def state_at(self, xy_mm: ArrayLike) -> NDArray[np.int8]:
         """State of the cell under each robot-frame point (N, 2) mm; UNKNOWN outside the grid."""
