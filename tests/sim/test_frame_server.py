@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import struct
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -67,6 +68,9 @@ def test_round_trip_over_a_real_socket(tmp_path):
             s.connect(str(path))
             times = [request_frame(s)[0] for _ in range(3)]
         assert times == pytest.approx([0.2, 0.3, 0.4])
+        deadline = time.monotonic() + 2.0  # the server counts after its sendall returns
+        while server.requests_served < 4 and time.monotonic() < deadline:
+            time.sleep(0.005)
         assert server.requests_served == 4
     assert not path.exists()
 
