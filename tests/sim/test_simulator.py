@@ -146,3 +146,39 @@ def test_disabled_command_brakes_whatever_the_duties_say():
     cu.exchange(_Cmd(), 0.0)
     cu.advance(0.0, 0.1)
     assert chair.pose == (0.0, 0.0, 0.0)
+
+
+def test_simulate_command_writes_a_report_with_the_crash(tmp_path, capsys):
+    import cv2
+
+    from omnid.cli import main
+
+    out = tmp_path / "run"
+    code = main(
+        [
+            "simulate",
+            "--course",
+            "empty-room",
+            "--drive",
+            "0:1:1",
+            "--duration-s",
+            "20",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    report = (out / "report.md").read_text()
+    assert "collisions: 1" in report and "collision (footprint)" in report
+    png = cv2.imread(str(out / "course.png"))
+    assert png is not None and png.shape[0] > 300 and png.shape[1] > 200
+    assert "report:" in capsys.readouterr().out
+
+
+def test_simulate_command_rejects_a_bad_drive_in_one_line(capsys):
+    from omnid.cli import main
+
+    assert main(["simulate", "--drive", "0:2:1", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--drive '0:2:1'" in err[0]
