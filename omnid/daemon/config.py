@@ -14,7 +14,7 @@ from typing import Literal
 
 from omnid.config import from_mapping, load_yaml, require
 from omnid.core.detect import DetectionParams
-from omnid.core.occupancy import GridSettings
+from omnid.core.freespace import FreeSpaceSettings
 from omnid.daemon.motion import MotionSettings
 from omnid.daemon.rider import RiderSettings
 from omnid.daemon.safety import SafetySettings
@@ -103,7 +103,7 @@ class OmnidConfig:
     rider: RiderSettings = field(default_factory=RiderSettings)
     safety: SafetySettings = field(default_factory=SafetySettings)
     motion: MotionSettings = field(default_factory=MotionSettings)
-    grid: GridSettings = field(default_factory=GridSettings)
+    freespace: FreeSpaceSettings = field(default_factory=FreeSpaceSettings)  # map + its grid
     detection: DetectionParams = field(default_factory=DetectionParams)
     perception: PerceptionSettings = field(default_factory=PerceptionSettings)
     devices: DeviceSettings = field(default_factory=DeviceSettings)

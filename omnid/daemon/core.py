@@ -26,6 +26,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from omnid.core.freespace import FreeSpaceMap
 from omnid.core.occupancy import OccupancyGrid
 from omnid.core.types import PointCloud
 from omnid.daemon.config import OmnidConfig
@@ -33,7 +34,6 @@ from omnid.daemon.motion import MotionController, Odometry
 from omnid.daemon.rider import JoystickSample, RiderDemand, RiderMux, TiltSample
 from omnid.daemon.safety import Reason, ReasonLog, SafetyDecision, SafetyLayer
 from omnid.devices.control_unit import WheelCommand
-from omnid.errors import OmnidError
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,9 @@ class StatusSample(Protocol):
 class WorldMap(Protocol):
     """What the core needs of ``omnid.core.freespace.FreeSpaceMap``."""
 
-    def update(self, cloud: PointCloud, rig_x_offset_mm: float) -> Any: ...
+    def update(
+        self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s: float | None = None
+    ) -> Any: ...
     def move(self, dx_mm: float, dy_mm: float, dtheta_rad: float) -> Any: ...
 
 
@@ -69,13 +71,9 @@ def _grid_of(world_map: Any) -> OccupancyGrid:
     raise TypeError("the world map must be an OccupancyGrid or have one as .grid")
 
 
-def default_map(config: OmnidConfig) -> WorldMap:
-    """The free-space map of ``omnid.core.freespace`` on the configured grid."""
-    try:
-        from omnid.core.freespace import FreeSpaceMap  # type: ignore[import-not-found,unused-ignore]
-    except ImportError as exc:
-        raise OmnidError("omnid.core.freespace (the free-space map) is not installed") from exc
-    return FreeSpaceMap(config.grid)  # type: ignore[no-any-return,unused-ignore]
+def default_map(config: OmnidConfig) -> FreeSpaceMap:
+    """The free-space map of :mod:`omnid.core.freespace` with the configured settings."""
+    return FreeSpaceMap(config.freespace)
 
 
 @dataclass(frozen=True)
@@ -110,15 +108,17 @@ def transform_cloud(
 class ControlCore:
     """The daemon's decision-making, one synchronous :meth:`step` per control period."""
 
-    def __init__(self, config: OmnidConfig, world_map: WorldMap | None = None) -> None:
+    def __init__(
+        self, config: OmnidConfig | None = None, world_map: WorldMap | None = None
+    ) -> None:
+        config = config if config is not None else OmnidConfig()
         self.config = config
         self.mux = RiderMux(config.rider)
         self.safety = SafetyLayer(config.safety)
         self.motion = MotionController(config.motion)
         self.odometry = Odometry(config.motion)
         self.map: WorldMap = world_map if world_map is not None else default_map(config)
-        self.grid = _grid_of(self.map)
-        self.laser_on = False  # what the perception cycle asks for
+        self.laser_on = True  # what the perception cycle asks for (off for mask frames)
         self.capturing = False  # True while mask/base frames are being taken
         self.status: StatusSample | None = None
         self.perception_time_s: float | None = None
@@ -127,6 +127,11 @@ class ControlCore:
         self._poses: deque[tuple[float, float, float, float]] = deque()
         self._log = ReasonLog(log, config.safety.log_interval_s)
         self.fault_count = 0
+
+    @property
+    def grid(self) -> OccupancyGrid:
+        """The map as a grid in the current robot frame (what the safety layer checks)."""
+        return _grid_of(self.map)
 
     # ---- inputs -------------------------------------------------------------------------
     def on_tilt(self, reading: TiltSample) -> None:
@@ -183,7 +188,9 @@ class ControlCore:
                 th1 - th0,
                 self.config.perception.rig_x_offset_mm,
             )
-        self.map.update(cloud, self.config.perception.rig_x_offset_mm)
+        self.map.update(cloud, self.config.perception.rig_x_offset_mm, capture_time_s)
+        if len(cloud) == 0:
+            return  # no dots: no evidence that the way is clear, the map's age keeps growing
         if self.perception_time_s is None or capture_time_s > self.perception_time_s:
             self.perception_time_s = float(capture_time_s)
 

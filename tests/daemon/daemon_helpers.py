@@ -54,7 +54,7 @@ class RecordingMap(OccupancyGrid):
         for state in (CellState.FREE, CellState.DROPOFF, CellState.OBSTACLE):
             self.mark(self.points[self.point_states == state], state)
 
-    def update(self, cloud: PointCloud, rig_x_offset_mm: float) -> None:
+    def update(self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s=None) -> None:
         self.clouds.append(cloud)
         code = {
             PointClass.FLOOR: CellState.FREE,

@@ -23,7 +23,7 @@ def make_core(**rider) -> tuple[ControlCore, RecordingMap]:
             tilt=TiltSettings(dwell_s=0.1), joystick=JoystickSettings(enabled=False), **rider
         )
     )
-    m = RecordingMap(cfg.grid)
+    m = RecordingMap(cfg.freespace.grid)
     return ControlCore(cfg, world_map=m), m
 
 
@@ -127,6 +127,7 @@ def test_stale_perception_refuses_forward():
 
 def test_obstacle_stops_the_chair_before_it():
     core, _m = make_core()
+    core = ControlCore(core.config)  # the real free-space map
     chair = Chair()
     core.on_perception(floor_cloud(obstacle_x_mm=1200.0), 0.0)  # wall 1500 mm ahead of the axle
     cmds = run(core, chair, 0.0, 15.0)
