@@ -18,6 +18,9 @@ from omnid.core.freespace import FreeSpaceSettings
 from omnid.daemon.motion import MotionSettings
 from omnid.daemon.rider import RiderSettings
 from omnid.daemon.safety import SafetySettings
+from omnid.devices.camera import CameraSettings
+from omnid.devices.control_unit import ControlUnitSettings
+from omnid.devices.teleop import TeleopSettings
 from omnid.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -66,23 +69,15 @@ class PerceptionSettings:
 
 
 @dataclass(frozen=True)
-class DeviceSettings:
-    """Where the devices are (URL-like, chosen by scheme; see docs/interfaces.md)."""
+class InputDeviceSettings:
+    """Rider input devices whose links are chosen by URL (tilt sensor, joystick)."""
 
-    control_unit_url: str = "/dev/omnid-control-unit"
-    control_unit_baud: int = 115200
-    command_period_s: float = 0.02
-    tilt_url: str = "/dev/omnid-tilt"
+    tilt_url: str = "/dev/omnid-tilt"  # GS311 USB serial (udev symlink); "" = none
     tilt_baud: int = 115200
-    camera_url: str = "v4l2:///dev/video0,/dev/video2"
-    joystick_url: str = ""  # "" = none; e.g. "hid://vid:pid" or "evdev:///dev/input/event3"
-    teleop_socket: str = "/run/omnid/teleop.sock"  # keyboard client (``omnid teleop``); "" = off
+    joystick_url: str = ""  # "" = none; e.g. "hid://VID:PID" or "evdev:///dev/input/event3"
 
     def __post_init__(self) -> None:
-        require(bool(self.control_unit_url), "control_unit_url", "must not be empty")
-        require(self.control_unit_baud > 0, "control_unit_baud", "must be positive")
         require(self.tilt_baud > 0, "tilt_baud", "must be positive")
-        require(0 < self.command_period_s <= 0.2, "command_period_s", "must be in (0, 0.2]")
 
 
 @dataclass(frozen=True)
@@ -106,7 +101,10 @@ class OmnidConfig:
     freespace: FreeSpaceSettings = field(default_factory=FreeSpaceSettings)  # map + its grid
     detection: DetectionParams = field(default_factory=DetectionParams)
     perception: PerceptionSettings = field(default_factory=PerceptionSettings)
-    devices: DeviceSettings = field(default_factory=DeviceSettings)
+    control_unit: ControlUnitSettings = field(default_factory=ControlUnitSettings)
+    camera: CameraSettings = field(default_factory=CameraSettings)
+    teleop: TeleopSettings = field(default_factory=TeleopSettings)
+    inputs: InputDeviceSettings = field(default_factory=InputDeviceSettings)
     service: ServiceSettings = field(default_factory=ServiceSettings)
 
 

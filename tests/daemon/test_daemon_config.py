@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,7 +14,19 @@ from omnid.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ROOT / "etc" / "omnid.yaml"
-DAEMON_SECTIONS = ("control", "rider", "safety", "motion", "perception", "devices", "service")
+DAEMON_SECTIONS = (
+    "control",
+    "rider",
+    "safety",
+    "motion",
+    "perception",
+    "freespace",
+    "control_unit",
+    "camera",
+    "teleop",
+    "inputs",
+    "service",
+)
 
 
 def keys(tree, prefix=""):
@@ -27,7 +40,17 @@ def keys(tree, prefix=""):
 
 def test_shipped_file_is_valid_and_lists_every_daemon_key():
     cfg = load_config(SHIPPED)
-    assert cfg == OmnidConfig()  # the file documents the defaults
+    # the file documents the defaults, except the devices' stable udev names
+    assert cfg.control_unit.port == "/dev/omnid-control-unit"
+    assert cfg.camera.url == "v4l2:///dev/omnid-camera1,/dev/omnid-camera2"
+    assert (
+        replace(
+            cfg,
+            control_unit=replace(cfg.control_unit, port=OmnidConfig().control_unit.port),
+            camera=replace(cfg.camera, url=OmnidConfig().camera.url),
+        )
+        == OmnidConfig()
+    )
     shipped = keys(yaml.safe_load(SHIPPED.read_text()))
     defaults = keys({s: to_mapping(getattr(OmnidConfig(), s)) for s in DAEMON_SECTIONS})
     assert defaults <= shipped
