@@ -120,6 +120,7 @@ class ControlCore:
         self.map: WorldMap = world_map if world_map is not None else default_map(config)
         self.laser_on = True  # what the perception cycle asks for (off for mask frames)
         self.capturing = False  # True while mask/base frames are being taken
+        self.halt = False  # shutting down: stop at the emergency rate whatever the rider asks
         self.status: StatusSample | None = None
         self.perception_time_s: float | None = None
         self.last_report: CycleReport | None = None
@@ -221,6 +222,8 @@ class ControlCore:
         dt = min(max(dt, 0.0), cfg.control.max_dt_s)
         self._last_step_s = now_s
         demand = self.mux.decide(now_s)
+        if self.halt:
+            demand = RiderDemand(stop=True, source="daemon", reason="shutdown_stale")
         st = self.status
         if st is None or now_s - st.timestamp_s > cfg.control.status_timeout_s or st.faults:
             reason = "status_stale" if st is None or not st.faults else "control_unit_fault"
@@ -237,7 +240,7 @@ class ControlCore:
         emergency = False
         if demand.stop:
             v_req = w_req = 0.0
-            if demand.reason.endswith(("_stale", "_invalid")):
+            if demand.reason.endswith(("_stale", "_invalid")):  # silence, bad input, shutdown
                 reasons.append(Reason.INPUT_STALE)
                 emergency = True
                 self._log.log(demand.reason, "rider input lost; stopping", now_s)
