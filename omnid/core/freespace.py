@@ -380,7 +380,7 @@ def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
     lo = pts.min(axis=0) - 10.0
     hi = pts.max(axis=0) + 10.0
     sub = cv2.Subdiv2D((float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])))
-    sub.insert([(float(p[0]), float(p[1])) for p in pts])
+    sub.insert(np.ascontiguousarray(pts))
     tri = np.asarray(sub.getTriangleList(), dtype=np.float32).reshape(-1, 3, 2)
     if len(tri) == 0:
         return np.zeros((0, 3), dtype=np.intp)
