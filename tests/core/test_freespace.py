@@ -15,7 +15,7 @@ from omnid.core.occupancy import CellState, GridSettings
 from omnid.core.types import PointClass, PointCloud
 from omnid.errors import ConfigError
 from omnid.sim import scenes
-from omnid.sim.world import Box, RigMount, World, cast_laser, observe
+from omnid.sim.world import Box, DropOff, RigMount, World, cast_laser, observe
 
 RIG = StereoRig.nominal()
 MOUNT = RigMount(x_offset_mm=300.0, height_mm=1100.0)
@@ -114,6 +114,21 @@ def test_region_beyond_a_dropoff_edge_is_never_free():
     # Blocked at the edge, or up to one dot spacing (110 mm) and a cell before it: conservative.
     assert 1300.0 - 110.0 - RES <= d <= 1300.0 + RES
     assert m.state_at([[1000.0, 0.0]])[0] == CellState.FREE
+
+
+def test_deep_stairwell_reads_dropoff_all_the_way():
+    # 1 m down: the lowered dots land far beyond the edge (gaps too long to triangulate), yet the
+    # rays' floor-level crossings mark the missing floor right from the edge.
+    edge = 800.0  # rig X; robot x = 1100
+    pit = DropOff(edge + 300.0, 5000.0, -3000.0, 3000.0, 1000.0)
+    sc = scenes.Scene("stairwell", World((), (pit,)), MOUNT)
+    m = fresh()
+    m.update(scene_cloud(sc), MOUNT.x_offset_mm)
+    xs = np.arange(1110.0, 1700.0, 20.0)
+    states = m.state_at(np.column_stack([xs, np.zeros_like(xs)]))
+    assert np.all(states == CellState.DROPOFF)
+    d = m.nearest_blocking_distance_mm(350.0, 3000.0)
+    assert 1100.0 - 110.0 - RES <= d <= 1100.0 + RES
 
 
 def test_unseen_cells_keep_their_state_and_seen_cells_are_updated():
