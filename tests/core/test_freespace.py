@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from omnid.core.classify import with_classes
 from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings, classified
@@ -208,3 +210,72 @@ def test_settings_validated_and_blocked_cells_listed():
     np.testing.assert_allclose(m.blocked_xy_mm(), [[1025.0, 325.0]])
     with pytest.raises(ValueError, match="non-finite"):
         m.move(float("nan"), 0.0, 0.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    pts=st.lists(
+        st.tuples(
+            st.floats(-6000, 6000),
+            st.floats(-6000, 6000),
+            st.floats(1.0, 3000.0),
+            st.sampled_from([0, 1, 2]),
+        ),
+        max_size=30,
+    ),
+    motion=st.tuples(st.floats(-2000, 2000), st.floats(-2000, 2000), st.floats(-7, 7)),
+    dup=st.booleans(),
+)
+def test_any_cloud_and_motion_keep_the_map_well_formed(pts, motion, dup):
+    # Arbitrary, degenerate (collinear, duplicate, off-grid) clouds never break the map.
+    arr = np.array([p[:3] for p in pts], dtype=np.float64).reshape(-1, 3)
+    cls = np.array([p[3] for p in pts], dtype=np.uint8)
+    if dup and len(arr):
+        arr, cls = np.vstack([arr, arr]), np.concatenate([cls, cls])
+    n = len(arr)
+    cloud = PointCloud(arr, np.zeros((n, 3, 3)), np.zeros((n, 4)), cls)
+    m = fresh()
+    m.update(cloud, 300.0, now_s=1.0)
+    m.move(*motion)
+    m.update(cloud, 300.0, now_s=2.0)
+    states = m.grid.states
+    assert states.dtype == np.int8 and set(np.unique(states)) <= {0, 1, 2, 3}
+    d = m.nearest_blocking_distance_mm(300.0, 2000.0)
+    assert d == math.inf or 0.0 <= d <= 2000.0 + RES
+
+
+def test_driving_and_turning_through_a_scene_keeps_obstacles_where_they_are_in_the_world():
+    # The chair drives 600 mm forward in steps, then turns 90° left on the spot, casting the
+    # laser at each true pose and telling the map the motion between them. At the end every
+    # remembered OBSTACLE cell must lie on a box (in the world), and each box must be remembered
+    # although the laser now looks elsewhere.
+    sc = scenes.three_boxes(MOUNT)
+    m = fresh()
+    poses = [(x, 0.0, 0.0) for x in np.arange(0.0, 601.0, 40.0)]
+    poses += [(600.0, 0.0, th) for th in np.linspace(0.05, math.pi / 2, 12)]
+    prev = None
+    for k, pose in enumerate(poses):
+        if prev is not None:
+            # Motion in the old robot frame.
+            c, s = math.cos(prev[2]), math.sin(prev[2])
+            dxw, dyw = pose[0] - prev[0], pose[1] - prev[1]
+            m.move(c * dxw + s * dyw, -s * dxw + c * dyw, pose[2] - prev[2])
+        hits = cast_laser(sc.world, pose, sc.mount, DotPattern(), RIG)
+        cloud, _ = observe(hits, RIG, 0.2, k, sc.mount.height_mm)
+        m.update(with_classes(cloud), sc.mount.x_offset_mm)
+        prev = pose
+    x0, y0, th = poses[-1]
+    blocked = m.grid.states == CellState.OBSTACLE
+    xs, ys = m.grid.cell_centers()
+    i, j = np.nonzero(blocked)
+    c, s = math.cos(th), math.sin(th)
+    wx = x0 + c * xs[i] - s * ys[j]
+    wy = y0 + s * xs[i] + c * ys[j]
+    margin = 2 * RES
+    near_box = np.zeros(len(i), dtype=bool)
+    for b in sc.world.boxes:
+        on = (wx >= b.x_min_mm - margin) & (wx <= b.x_max_mm + margin)
+        on &= (wy >= b.y_min_mm - margin) & (wy <= b.y_max_mm + margin)
+        near_box |= on
+        assert on.sum() >= 2, f"box {b} forgotten"
+    assert np.mean(near_box) >= 0.97
