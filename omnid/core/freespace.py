@@ -51,6 +51,9 @@ class FreeSpaceSettings:
     obstacle_max_edge_mm   longest edge of a triangle of obstacle dots filled as OBSTACLE
                            (a box top between its dots; gaps this narrow are impassable anyway)
     obstacle_inflation_mm  obstacle and drop-off dots also block cells this far around them
+    clear_after_contradictions  a remembered OBSTACLE/DROPOFF cell that only the filling between
+                           floor dots calls free (no dot in the cell) is cleared after this many
+                           captures in a row say so; a floor dot in the cell clears it at once
     forget_after_s         remembered cells not seen again for this long become UNKNOWN
                            (0: never forget); needs ``now_s`` in :meth:`FreeSpaceMap.update`
     reanchor_distance_mm   travel from the anchor pose before the stored grid is resampled
@@ -62,6 +65,7 @@ class FreeSpaceSettings:
     obstacle_max_edge_mm: float = 200.0
     obstacle_inflation_mm: float = 0.0
     forget_after_s: float = 0.0
+    clear_after_contradictions: int = 3
     reanchor_distance_mm: float = 1000.0
 
     def __post_init__(self) -> None:
@@ -76,6 +80,7 @@ class FreeSpaceSettings:
             value = getattr(self, key)
             require(math.isfinite(value) and value >= 0, key, "must be a finite number ≥ 0")
         require(self.free_max_edge_mm > 0, "free_max_edge_mm", "must be positive")
+        require(self.clear_after_contradictions >= 1, "clear_after_contradictions", "must be ≥ 1")
 
 
 def _affine(
@@ -123,6 +128,7 @@ class FreeSpaceMap:
         self._anchor_settings = GridSettings(g.resolution_mm, -half, half, -half, half)
         self._anchor = OccupancyGrid(self._anchor_settings)
         self._seen_s = np.full(self._anchor.states.shape, -np.inf)
+        self._contradictions: NDArray[np.uint8] = np.zeros(self._anchor.states.shape, np.uint8)
         self._pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  # robot in the anchor frame
         self._now_s = 0.0
         self._grid: OccupancyGrid | None = None
@@ -175,6 +181,17 @@ class FreeSpaceMap:
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=-1e300,
         )
+        self._contradictions = np.asarray(
+            cv2.warpAffine(
+                self._contradictions,
+                M,
+                (ny, nx),
+                flags=flags,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            ),
+            dtype=np.uint8,
+        )
         self._pose = (0.0, 0.0, 0.0)
 
     # -- observations -------------------------------------------------------------------------
@@ -209,8 +226,21 @@ class FreeSpaceMap:
             # the last floor dots and the first crossings reads DROPOFF too.
             xy = np.vstack([xy, xy0])
             cls = np.concatenate([cls, np.full(len(xy0), PointClass.DROPOFF, np.uint8)])
-            obs = self._observation(xy, cls, cv2, segments)
+            obs, direct_free = self._observation(xy, cls, cv2, segments)
             seen = obs != _UNSEEN
+            # Free area filled in between floor dots is an interpolation: it must not erase a
+            # remembered obstacle or drop-off (a thin post can fall between the dots of one
+            # capture). Only a floor dot landing in the cell itself clears it.
+            held = (self._anchor.states == CellState.OBSTACLE) | (
+                self._anchor.states == CellState.DROPOFF
+            )
+            # It does clear it once ``clear_after_contradictions`` captures in a row have filled
+            # it as free, so a phantom or removed obstacle between dot columns cannot stay forever.
+            contradicted = held & (obs == CellState.FREE) & ~direct_free
+            self._contradictions[contradicted] += 1
+            self._contradictions[~contradicted] = 0
+            keep = contradicted & (self._contradictions < st.clear_after_contradictions)
+            seen &= ~keep
             self._anchor.states[seen] = obs[seen].astype(np.int8)
             self._seen_s[seen] = self._now_s
         if st.forget_after_s > 0 and now_s is not None:
@@ -233,8 +263,9 @@ class FreeSpaceMap:
         cls: NDArray[np.uint8],
         cv2,
         missing_floor: NDArray[np.float64],
-    ) -> NDArray:
-        """The cells one cloud speaks about: uint8 CellState values, _UNSEEN elsewhere.
+    ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+        """The cells one cloud speaks about: uint8 CellState values, _UNSEEN elsewhere; and the
+        mask of cells FREE because a floor dot lies in them (not by filling between dots).
 
         ``missing_floor`` (M, 2, 2): anchor-frame segments along which the floor is known to be
         missing (a lowered dot's ray from its floor-level crossing to the dot).
@@ -281,6 +312,8 @@ class FreeSpaceMap:
         # A floor dot's own cell is free unless this cloud already called it a drop-off.
         here = obs[cells[fl, 1], cells[fl, 0]]
         obs[cells[fl, 1], cells[fl, 0]] = np.where(here == CellState.DROPOFF, here, CellState.FREE)
+        direct_free = np.zeros(shape, dtype=bool)
+        direct_free[cells[fl, 1], cells[fl, 0]] = True
         if len(missing_floor):
             res = self._anchor_settings.resolution_mm
             seg = missing_floor[:, 1] - missing_floor[:, 0]
@@ -305,7 +338,7 @@ class FreeSpaceMap:
                 )
                 layer = cv2.dilate(layer, kernel)
             obs[layer > 0] = int(state)
-        return obs
+        return obs, direct_free & (obs == CellState.FREE)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -387,6 +420,7 @@ class FreeSpaceMap:
         """Forget everything (all cells UNKNOWN)."""
         self._anchor.states[:] = CellState.UNKNOWN
         self._seen_s[:] = -np.inf
+        self._contradictions[:] = 0
         self._grid = None
 
     def render_png(self, path: str | Path, cloud: PointCloud | None = None) -> None:

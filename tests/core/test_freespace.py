@@ -139,9 +139,39 @@ def test_unseen_cells_keep_their_state_and_seen_cells_are_updated():
     m.update(scene_cloud(scenes.Scene("box", World((box,)), MOUNT)), MOUNT.x_offset_mm)
     m.update(PointCloud(), MOUNT.x_offset_mm)  # empty cloud
     assert m.state_at([[1400.0, 0.0]])[0] == CellState.OBSTACLE
-    # The box was taken away and the laser sees bare floor there now.
-    m.update(scene_cloud(scenes.floor(MOUNT)), MOUNT.x_offset_mm)
-    assert m.state_at([[1400.0, 0.0]])[0] == CellState.FREE
+    # The box was taken away and the laser sees bare floor there now: cells with a floor dot in
+    # them clear at once, the rest after clear_after_contradictions (3) captures in a row.
+    box_cells = np.array([[x, y] for x in range(1325, 1550, 50) for y in range(-175, 200, 50)])
+    m.update(scene_cloud(scenes.floor(MOUNT), seed=1), MOUNT.x_offset_mm)
+    left = np.sum(m.state_at(box_cells) == CellState.OBSTACLE)
+    assert 0 < left < len(box_cells)
+    m.update(scene_cloud(scenes.floor(MOUNT), seed=2), MOUNT.x_offset_mm)
+    assert 0 < np.sum(m.state_at(box_cells) == CellState.OBSTACLE) <= left
+    m.update(scene_cloud(scenes.floor(MOUNT), seed=3), MOUNT.x_offset_mm)
+    assert np.all(m.state_at(box_cells) == CellState.FREE)
+
+
+def test_filling_between_floor_dots_does_not_erase_a_remembered_thin_post():
+    m = fresh()
+    floor_cloud = scene_cloud(scenes.floor(MOUNT), truth_classes=True)
+    xy = floor_cloud.xyz[:, :2] + [MOUNT.x_offset_mm, 0.0]
+    # A post between floor dots: seen once (one dot on it), then missed by the lattice.
+    post_robot = np.array([[1300.0 + 55.0, 55.0]])
+    assert np.min(np.linalg.norm(xy * [1, -1] - post_robot, axis=1)) > 40.0
+    m.update(_obstacle_cloud(post_robot), 0.0)
+    m.update(floor_cloud, MOUNT.x_offset_mm)
+    assert m.state_at(post_robot)[0] == CellState.OBSTACLE
+    # Its neighbourhood became free, and a floor dot landing in the cell does clear it.
+    assert m.state_at(np.add(post_robot, [0.0, 110.0]))[0] == CellState.FREE
+    m.update(_floor_cloud(post_robot), 0.0)
+    assert m.state_at(post_robot)[0] == CellState.FREE
+
+
+def _floor_cloud(xy_robot):
+    xy = np.asarray(xy_robot, dtype=np.float64)
+    n = len(xy)
+    xyz = np.column_stack([xy[:, 0], -xy[:, 1], np.full(n, 1100.0)])
+    return PointCloud(xyz, np.zeros((n, 3, 3)), np.zeros((n, 4)), np.zeros(n, np.uint8))
 
 
 def test_remembered_cells_age_out_when_asked():
