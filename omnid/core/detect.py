@@ -392,7 +392,7 @@ def _refine(
     through batched 4x4 normal equations. The centre is (−b/2e, −c/2e), kept within ±1 px of
     the peak pixel. On clean rendered dots this reaches ~1.5× the Cramér–Rao bound; a 5x5
     centroid is 3× worse (truncation pulls it to the pixel centre), the per-axis 3-point
-    Gaussian 1.8× worse (measured with tools/bench_detect.py --refine-study).
+    Gaussian 1.8× worse (measured while choosing; see docs/benchmarks/detection.md).
     """
     o = _FIT_OFF
     win = d[rows[:, None, None] + o[None, :, None], cols[:, None, None] + o[None, None, :]]
