@@ -1,0 +1,342 @@
+"""The simulated chair: differential-drive dynamics, wheel clocks, footprint, collisions and falls.
+
+This is the ``plant`` the control-unit emulator drives (docs/interfaces.md): it receives the PWM
+duty the emulated control unit applies to each wheel, ``step(left_duty, right_duty, dt_s)``, and
+reports the proximity-sensor counters, ``clocks() -> (left, right)``.
+
+Model (thesis 3.3, 4.3.2; SPEC §1)
+----------------------------------
+* Each wheel's surface speed follows its duty with a first-order motor lag::
+
+      dv/dt = (u − v) / τ,   u = gain · duty · v_max,   v_max = rpm_max / 60 · circumference
+
+  Over a step of constant duty this has the exact solution v(t) = u + (v₀ − u)·e^(−t/τ), whose
+  integral gives the wheel travel of the step in closed form (no Euler error).
+* Wheel slip: a fraction ``slip`` of each wheel's travel does not move the chair (the wheel
+  spins); the clocks count the wheel's rotation, not the chair's motion, as a real encoder does.
+* Pose: the body twist of a differential drive (thesis eqs. 3.11, 3.12, with y to the **left**
+  and θ counter-clockwise, so v = (v_L + v_R)/2 and ω = (v_R − v_L)/L) integrated as an exact
+  circular arc per sub-step (eq. 3.14 with constant v, ω). Sub-steps are at most
+  ``max_substep_s`` long, so even while the motors accelerate the arc error is negligible; with
+  both wheels accelerating from rest under one time constant the curvature is constant and the
+  path is an exact circle.
+* Clocks: 15 holes per wheel disk and 471 mm wheel circumference (thesis 4.3.2.3): one clock per
+  31.4 mm of wheel travel, counting up forward and down backward.
+
+World frame: x, y on the floor (y left), θ counter-clockwise; the chair pose is the robot frame's
+origin (the wheel-axle midpoint) in the world. The footprint is a rectangle around the axle,
+mostly ahead of it (the front casters carry the front, the drive wheels sit on the axle).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnid.config import require
+
+
+@dataclass(frozen=True)
+class ChairSettings:
+    """Dimensions and motor model of the simulated chair (mm, s, rpm; duty in [-1, 1])."""
+
+    track_mm: float = 560.0  # distance L between the drive wheels (thesis eq. 3.11)
+    wheel_circumference_mm: float = 471.0  # thesis 4.3.2.3
+    clocks_per_turn: int = 15  # holes per wheel disk, thesis 4.3.2.3
+    max_rpm: float = 30.0  # wheel speed at full duty and gain 1 (thesis Table 4.3: 27–32 rpm)
+    motor_time_constant_s: float = 0.15  # first-order lag of wheel speed behind duty
+    left_gain: float = 1.0  # per-wheel gain (motor mismatch), 1 = nominal
+    right_gain: float = 0.96
+    left_slip: float = 0.0  # fraction of wheel travel lost to slip, [0, 1)
+    right_slip: float = 0.0
+    deadband_duty: float = 0.0  # |duty| below this does not turn the wheel (static friction)
+    footprint_front_mm: float = 500.0  # footprint reaches this far ahead of the axle
+    footprint_rear_mm: float = 200.0  # ... and this far behind it
+    footprint_width_mm: float = 600.0
+    front_wheel_x_mm: float = 430.0  # front casters, ahead of the axle
+    front_wheel_y_mm: float = 230.0  # ... at ±this lateral offset
+    com_x_mm: float = 150.0  # centre of mass, ahead of the axle on the centre line
+    collision_height_mm: float = 15.0  # boxes lower than this are driven over
+    fall_depth_mm: float = 30.0  # drop-offs shallower than this are driven over
+    max_substep_s: float = 0.005
+
+    def __post_init__(self) -> None:
+        for name in (
+            "track_mm",
+            "wheel_circumference_mm",
+            "max_rpm",
+            "footprint_width_mm",
+            "max_substep_s",
+        ):
+            require(getattr(self, name) > 0, name, "must be positive")
+        require(self.clocks_per_turn >= 1, "clocks_per_turn", "must be at least 1")
+        require(self.motor_time_constant_s >= 0, "motor_time_constant_s", "must be ≥ 0")
+        for name in ("left_gain", "right_gain"):
+            require(0 < getattr(self, name) <= 2, name, "must be in (0, 2]")
+        for name in ("left_slip", "right_slip"):
+            require(0 <= getattr(self, name) < 1, name, "must be in [0, 1)")
+        require(0 <= self.deadband_duty < 1, "deadband_duty", "must be in [0, 1)")
+        require(
+            self.footprint_front_mm + self.footprint_rear_mm > 0,
+            "footprint_front_mm",
+            "footprint must have positive length",
+        )
+
+    @property
+    def clock_mm(self) -> float:
+        """Wheel travel per clock, mm (471 / 15 = 31.4 mm)."""
+        return self.wheel_circumference_mm / self.clocks_per_turn
+
+    @property
+    def max_speed_mm_s(self) -> float:
+        """Wheel surface speed at full duty and gain 1, mm/s."""
+        return self.max_rpm / 60.0 * self.wheel_circumference_mm
+
+
+class _Rect(Protocol):
+    """Anything with an axis-aligned floor rectangle (``world.Box`` and ``world.DropOff``)."""
+
+    @property
+    def x_min_mm(self) -> float: ...
+    @property
+    def x_max_mm(self) -> float: ...
+    @property
+    def y_min_mm(self) -> float: ...
+    @property
+    def y_max_mm(self) -> float: ...
+
+
+class _BoxLike(_Rect, Protocol):
+    @property
+    def height_mm(self) -> float: ...
+
+
+class _DropLike(_Rect, Protocol):
+    @property
+    def depth_mm(self) -> float: ...
+
+
+class _WorldLike(Protocol):
+    """The part of ``omnid.sim.world.World`` the chair needs: its boxes and drop-offs."""
+
+    @property
+    def boxes(self) -> Sequence[_BoxLike]: ...
+    @property
+    def dropoffs(self) -> Sequence[_DropLike]: ...
+
+
+@dataclass(frozen=True)
+class Contact:
+    """The chair touched something it must not: a box (``collision``) or a drop-off (``fall``).
+
+    ``index`` is the box's (or drop-off's) position in the world's tuple; ``part`` names what
+    touched it (``footprint``, ``centre of mass``, ``left front wheel``, ...).
+    """
+
+    kind: Literal["collision", "fall"]
+    index: int
+    part: str
+
+
+@dataclass(frozen=True)
+class ChairState:
+    """A snapshot of the chair: pose (mm, rad), wheel surface speeds (mm/s), wheel travel (mm)."""
+
+    x_mm: float
+    y_mm: float
+    theta_rad: float
+    left_speed_mm_s: float
+    right_speed_mm_s: float
+    left_travel_mm: float
+    right_travel_mm: float
+
+
+def _lag_step(v0: float, u: float, dt_s: float, tau_s: float) -> tuple[float, float]:
+    """Exact first-order response over ``dt_s``: (speed at the end, distance travelled)."""
+    if tau_s <= 0.0:
+        return u, u * dt_s
+    decay = math.exp(-dt_s / tau_s)
+    return u + (v0 - u) * decay, u * dt_s + (v0 - u) * tau_s * (1.0 - decay)
+
+
+def integrate_arc(
+    x_mm: float, y_mm: float, theta_rad: float, dl_mm: float, dr_mm: float, track_mm: float
+) -> tuple[float, float, float]:
+    """Move a differential-drive pose by wheel travels ``dl_mm``, ``dr_mm`` along an exact arc.
+
+    The body moves ds = (dl + dr)/2 and turns dθ = (dr − dl)/L (thesis eqs. 3.11, 3.12 with θ
+    counter-clockwise), along the circle of radius R = ds/dθ (eq. 3.10), i.e. eq. 3.14 integrated
+    in closed form for constant v and ω.
+    """
+    ds = 0.5 * (dl_mm + dr_mm)
+    dth = (dr_mm - dl_mm) / track_mm
+    if abs(dth) < 1e-12:
+        return x_mm + ds * math.cos(theta_rad), y_mm + ds * math.sin(theta_rad), theta_rad
+    radius = ds / dth
+    th1 = theta_rad + dth
+    return (
+        x_mm + radius * (math.sin(th1) - math.sin(theta_rad)),
+        y_mm - radius * (math.cos(th1) - math.cos(theta_rad)),
+        th1,
+    )
+
+
+def _overlaps_aabb(corners: NDArray[np.float64], axis_u: NDArray[np.float64], rect: _Rect) -> bool:
+    """Separating-axis test of an oriented rectangle (4 corners, unit long axis) and an AABB."""
+    xmin, xmax = float(rect.x_min_mm), float(rect.x_max_mm)
+    ymin, ymax = float(rect.y_min_mm), float(rect.y_max_mm)
+    if corners[:, 0].max() <= xmin or corners[:, 0].min() >= xmax:
+        return False
+    if corners[:, 1].max() <= ymin or corners[:, 1].min() >= ymax:
+        return False
+    box = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    for axis in (axis_u, np.array([-axis_u[1], axis_u[0]])):
+        a, b = corners @ axis, box @ axis
+        if a.max() <= b.min() or a.min() >= b.max():
+            return False
+    return True
+
+
+def _inside(point: NDArray[np.float64], rect: _Rect) -> bool:
+    return bool(
+        rect.x_min_mm < point[0] < rect.x_max_mm and rect.y_min_mm < point[1] < rect.y_max_mm
+    )
+
+
+class Chair:
+    """The simulated chair; ``step`` / ``clocks`` make it a control-unit emulator plant."""
+
+    def __init__(
+        self,
+        settings: ChairSettings | None = None,
+        pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        self.settings = settings or ChairSettings()
+        self.x_mm, self.y_mm, self.theta_rad = (float(v) for v in pose)
+        self.left_speed_mm_s = 0.0
+        self.right_speed_mm_s = 0.0
+        self.left_travel_mm = 0.0
+        self.right_travel_mm = 0.0
+        self.left_duty = 0.0
+        self.right_duty = 0.0
+
+    # -- the plant contract -------------------------------------------------------------------
+
+    def _target_speed(self, duty: float, gain: float) -> float:
+        s = self.settings
+        d = max(-1.0, min(1.0, float(duty))) if math.isfinite(duty) else 0.0
+        if abs(d) <= s.deadband_duty:
+            return 0.0
+        return gain * d * s.max_speed_mm_s
+
+    def step(self, left_duty: float, right_duty: float, dt_s: float) -> None:
+        """Advance the chair by ``dt_s`` seconds with constant signed duties in [-1, 1].
+
+        Non-finite duties are treated as 0 (a broken command stops the wheel, it never runs it);
+        duties beyond ±1 saturate.
+        """
+        if not (math.isfinite(dt_s) and dt_s >= 0):
+            raise ValueError(f"Chair.step: dt_s must be finite and ≥ 0, got {dt_s!r}")
+        s = self.settings
+        self.left_duty, self.right_duty = float(left_duty), float(right_duty)
+        ul = self._target_speed(left_duty, s.left_gain)
+        ur = self._target_speed(right_duty, s.right_gain)
+        n = max(1, math.ceil(dt_s / s.max_substep_s - 1e-9))
+        h = dt_s / n
+        for _ in range(n):
+            self.left_speed_mm_s, dl = _lag_step(
+                self.left_speed_mm_s, ul, h, s.motor_time_constant_s
+            )
+            self.right_speed_mm_s, dr = _lag_step(
+                self.right_speed_mm_s, ur, h, s.motor_time_constant_s
+            )
+            self.left_travel_mm += dl
+            self.right_travel_mm += dr
+            self.x_mm, self.y_mm, self.theta_rad = integrate_arc(
+                self.x_mm,
+                self.y_mm,
+                self.theta_rad,
+                dl * (1.0 - s.left_slip),
+                dr * (1.0 - s.right_slip),
+                s.track_mm,
+            )
+
+    def clocks(self) -> tuple[int, int]:
+        """Proximity-sensor counters (left, right): whole holes passed, signed (thesis 4.3.2.3)."""
+        c = self.settings.clock_mm
+        return math.floor(self.left_travel_mm / c), math.floor(self.right_travel_mm / c)
+
+    # -- pose and geometry --------------------------------------------------------------------
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """(x_mm, y_mm, theta_rad) of the axle midpoint in the world."""
+        return (self.x_mm, self.y_mm, self.theta_rad)
+
+    def state(self) -> ChairState:
+        return ChairState(
+            self.x_mm,
+            self.y_mm,
+            self.theta_rad,
+            self.left_speed_mm_s,
+            self.right_speed_mm_s,
+            self.left_travel_mm,
+            self.right_travel_mm,
+        )
+
+    def to_world(self, xy_robot_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Robot-frame points (N, 2) mm → world (N, 2) mm at the current pose."""
+        p = np.asarray(xy_robot_mm, dtype=np.float64).reshape(-1, 2)
+        c, s = math.cos(self.theta_rad), math.sin(self.theta_rad)
+        return np.column_stack(
+            [self.x_mm + c * p[:, 0] - s * p[:, 1], self.y_mm + s * p[:, 0] + c * p[:, 1]]
+        )
+
+    def footprint(self) -> NDArray[np.float64]:
+        """The footprint's corners (4, 2) in the world, mm, counter-clockwise from front-right."""
+        s = self.settings
+        w = s.footprint_width_mm / 2.0
+        f, r = s.footprint_front_mm, -s.footprint_rear_mm
+        return self.to_world(np.array([[f, -w], [f, w], [r, w], [r, -w]], dtype=np.float64))
+
+    def support_points(self) -> dict[str, NDArray[np.float64]]:
+        """World positions (2,) of the points that must stay on the floor, by name."""
+        s = self.settings
+        local = {
+            "centre of mass": (s.com_x_mm, 0.0),
+            "left front wheel": (s.front_wheel_x_mm, s.front_wheel_y_mm),
+            "right front wheel": (s.front_wheel_x_mm, -s.front_wheel_y_mm),
+            "left drive wheel": (0.0, s.track_mm / 2.0),
+            "right drive wheel": (0.0, -s.track_mm / 2.0),
+        }
+        pts = self.to_world(np.array(list(local.values()), dtype=np.float64))
+        return {name: pts[i] for i, name in enumerate(local)}
+
+    def contacts(self, world: _WorldLike) -> list[Contact]:
+        """Everything the chair touches at its current pose that it must not.
+
+        A box at least ``collision_height_mm`` tall that overlaps the footprint is a collision;
+        a drop-off at least ``fall_depth_mm`` deep under the centre of mass or any wheel is a
+        fall. Touching is overlap of positive area (grazing an edge is not a contact).
+        """
+        s = self.settings
+        out: list[Contact] = []
+        corners = self.footprint()
+        axis = np.array([math.cos(self.theta_rad), math.sin(self.theta_rad)])
+        for i, box in enumerate(world.boxes):
+            if float(box.height_mm) >= s.collision_height_mm and _overlaps_aabb(corners, axis, box):
+                out.append(Contact("collision", i, "footprint"))
+        support = self.support_points()
+        for i, drop in enumerate(world.dropoffs):
+            if float(drop.depth_mm) < s.fall_depth_mm:
+                continue
+            for name, p in support.items():
+                if _inside(p, drop):
+                    out.append(Contact("fall", i, name))
+                    break
+        return out

@@ -1,0 +1,135 @@
+"""The built-in course: a walled room with three boxes, a wide and a narrow passage, and stairs.
+
+World frame (``omnid.sim.world``): x, y on the floor with y to the left, mm. The chair starts at
+the origin facing +x. Layout, seen from above (x up the page)::
+
+    x = 6500  ───────────── wall ──────────────
+              ░░░░░░░ stairs down 170 mm ░░░░│      (drop-off x 4800–6500, y −2200…600)
+    x = 4800  ░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░│
+                                   [box 3]      (x 3800–4200, y 1000–1400, 300 mm tall)
+    x = 2900  ═══════ ═══ wide ═══ narrow ═══   partition; wide gap y −450…450 (900 mm),
+                                                  narrow gap y 1200…1650 (450 mm)
+              [box 2]                           (x 1800–2200, y −1100…−600, 600 mm)
+                          [box 1]               (x 1300–1700, y 500…900, 400 mm)
+    x = 0            chair ▲ (start)
+    x = −800  ───────────── wall ──────────────
+              y = −2200 (right)        y = +2200 (left)
+
+The chair (600 mm wide) fits through the wide gap but not the narrow one; driving straight on
+from the start leads through the wide gap towards the stairs, which the daemon must refuse.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from omnid.sim.rider import HeadScript, KeyScript, head_script
+from omnid.sim.world import Box, DropOff, World
+
+WALL_MM = 100.0
+WALL_HEIGHT_MM = 1000.0
+
+
+@dataclass(frozen=True)
+class Course:
+    """A world with a start pose and a short description of what is in it."""
+
+    name: str
+    world: World
+    start_pose: tuple[float, float, float]
+    x_range_mm: tuple[float, float]
+    y_range_mm: tuple[float, float]
+    labels: tuple[tuple[str, float, float], ...] = ()  # (text, x_mm, y_mm) for drawings
+
+
+def walls(x_min: float, x_max: float, y_min: float, y_max: float) -> tuple[Box, ...]:
+    """Four walls enclosing the floor rectangle (walls stand just outside it)."""
+    t, h = WALL_MM, WALL_HEIGHT_MM
+    return (
+        Box(x_min - t, x_max + t, y_min - t, y_min, h),  # right
+        Box(x_min - t, x_max + t, y_max, y_max + t, h),  # left
+        Box(x_min - t, x_min, y_min, y_max, h),  # back
+        Box(x_max, x_max + t, y_min, y_max, h),  # front
+    )
+
+
+def builtin_course() -> Course:
+    """The demo course described in the module docstring."""
+    x0, x1, y0, y1 = -800.0, 6500.0, -2200.0, 2200.0
+    px0, px1 = 2800.0, 2900.0  # partition
+    wide, narrow = (-450.0, 450.0), (1200.0, 1650.0)
+    partition = (
+        Box(px0, px1, y0, wide[0], WALL_HEIGHT_MM),
+        Box(px0, px1, wide[1], narrow[0], WALL_HEIGHT_MM),
+        Box(px0, px1, narrow[1], y1, WALL_HEIGHT_MM),
+    )
+    boxes = (
+        Box(1300.0, 1700.0, 500.0, 900.0, 400.0),
+        Box(1800.0, 2200.0, -1100.0, -600.0, 600.0),
+        Box(3800.0, 4200.0, 1000.0, 1400.0, 300.0),
+    )
+    stairs = DropOff(4800.0, x1, y0, 600.0, 170.0)
+    world = World(boxes=(*boxes, *partition, *walls(x0, x1, y0, y1)), dropoffs=(stairs,))
+    return Course(
+        name="builtin",
+        world=world,
+        start_pose=(0.0, 0.0, 0.0),
+        x_range_mm=(x0 - WALL_MM, x1 + WALL_MM),
+        y_range_mm=(y0 - WALL_MM, y1 + WALL_MM),
+        labels=(
+            ("box 1", 1500.0, 700.0),
+            ("box 2", 2000.0, -850.0),
+            ("box 3", 4000.0, 1200.0),
+            ("wide passage", 2850.0, 0.0),
+            ("narrow passage", 2850.0, 1425.0),
+            ("stairs down", 5600.0, -800.0),
+        ),
+    )
+
+
+def empty_room(length_mm: float = 4000.0, width_mm: float = 3000.0) -> Course:
+    """A walled empty room with the chair at its back, facing the front wall ``length_mm`` away."""
+    x0, x1 = -500.0, length_mm - 500.0
+    y0, y1 = -width_mm / 2.0, width_mm / 2.0
+    return Course(
+        name="empty-room",
+        world=World(boxes=walls(x0, x1, y0, y1)),
+        start_pose=(0.0, 0.0, 0.0),
+        x_range_mm=(x0 - WALL_MM, x1 + WALL_MM),
+        y_range_mm=(y0 - WALL_MM, y1 + WALL_MM),
+    )
+
+
+def demo_rider() -> HeadScript:
+    """The demo's rider: straight on towards the stairs (the daemon must stop the chair before
+    them), turn left, forward towards box 3 (must stop again), then rest."""
+    return head_script(
+        [
+            ("neutral", 1.0),
+            ("forward", 24.0),
+            ("neutral", 1.0),
+            ("left", 3.5),
+            ("neutral", 0.5),
+            ("forward", 10.0),
+            ("stop", 2.0),
+            ("neutral", 1.0),
+        ]
+    )
+
+
+def demo_keys() -> KeyScript:
+    """The same ride as :func:`demo_rider` on the keyboard."""
+    return KeyScript(((1.0, "forward"), (26.0, "left"), (29.5, "forward"), (40.0, "stop")))
+
+
+COURSES = {"builtin": builtin_course, "empty-room": empty_room}
+
+
+def get_course(name: str) -> Course:
+    """A named course (``builtin`` or ``empty-room``)."""
+    try:
+        return COURSES[name]()
+    except KeyError:
+        from omnid.errors import InputError
+
+        raise InputError(f"unknown course {name!r} (known: {', '.join(COURSES)})") from None

@@ -1,0 +1,180 @@
+"""Reports of simulated runs: a top-down PNG of the course and a Markdown summary.
+
+The drawing shows the floor (white), drop-offs (hatched red), boxes and walls (gray), the chair's
+path (blue) with its footprint at the start (green) and the end (blue outline), the non-floor
+points perception reported (obstacles red, drop-offs orange), where the daemon refused a command
+(magenta rings) and any collision or fall (black crosses).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnid.core.types import PointClass
+from omnid.sim.chair import Chair, ChairSettings
+from omnid.sim.course import Course
+from omnid.sim.simulator import SimResult
+
+_BGR = {
+    "floor": (255, 255, 255),
+    "drop": (200, 200, 255),
+    "drop_hatch": (90, 90, 220),
+    "box": (150, 150, 150),
+    "path": (200, 90, 20),
+    "start": (40, 160, 40),
+    "obstacle": (30, 30, 230),
+    "dropoff": (0, 140, 255),
+    "refusal": (200, 0, 200),
+    "contact": (0, 0, 0),
+    "text": (40, 40, 40),
+}
+
+
+class _Canvas:
+    """World mm → image px (x up the page, y to the left), with a margin for the legend."""
+
+    def __init__(self, course: Course, px_per_mm: float, margin_px: int = 30) -> None:
+        self.s = px_per_mm
+        self.m = margin_px
+        (self.x0, self.x1), (self.y0, self.y1) = course.x_range_mm, course.y_range_mm
+        self.w = math.ceil((self.y1 - self.y0) * self.s) + 2 * margin_px
+        self.h = math.ceil((self.x1 - self.x0) * self.s) + 2 * margin_px + 60
+        self.img = np.full((self.h, self.w, 3), 235, np.uint8)
+
+    def px(self, xy_mm: NDArray[np.float64]) -> NDArray[np.int32]:
+        q = np.asarray(xy_mm, dtype=np.float64).reshape(-1, 2)
+        col = self.m + (self.y1 - q[:, 1]) * self.s
+        row = self.m + (self.x1 - q[:, 0]) * self.s
+        return np.column_stack([col, row]).round().astype(np.int32)
+
+    def rect(self, x0: float, x1: float, y0: float, y1: float) -> NDArray[np.int32]:
+        return self.px(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]))
+
+
+def draw_run(
+    path: str | Path,
+    course: Course,
+    result: SimResult,
+    chair_settings: ChairSettings | None = None,
+    px_per_mm: float = 0.1,
+) -> Path:
+    """Write the top-down PNG of ``result`` in ``course`` to ``path``; returns the path."""
+    import cv2
+
+    cv = _Canvas(course, px_per_mm)
+    img = cv.img
+    cv2.fillPoly(img, [cv.rect(cv.x0, cv.x1, cv.y0, cv.y1)], _BGR["floor"])
+    for d in course.world.dropoffs:
+        poly = cv.rect(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm)
+        cv2.fillPoly(img, [poly], _BGR["drop"])
+        (c0, r0), (c1, r1) = poly.min(axis=0), poly.max(axis=0)
+        for k in range(int(c0 - (r1 - r0)), int(c1), 12):  # 45° hatch, clipped to the rect
+            a = np.array([[k, r1], [k + (r1 - r0), r0]], np.int32)
+            sub = img[r0 : r1 + 1, c0 : c1 + 1]
+            cv2.line(sub, tuple(a[0] - [c0, r0]), tuple(a[1] - [c0, r0]), _BGR["drop_hatch"], 1)
+    for b in course.world.boxes:
+        cv2.fillPoly(img, [cv.rect(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm)], _BGR["box"])
+
+    seen = result.seen
+    for code, color in ((PointClass.OBSTACLE, "obstacle"), (PointClass.DROPOFF, "dropoff")):
+        pts = cv.px(seen[seen[:, 2] == code, :2]) if len(seen) else np.zeros((0, 2), np.int32)
+        for c, r in pts:
+            cv2.circle(img, (int(c), int(r)), 1, _BGR[color], -1)
+
+    traj = result.trajectory
+    chair = Chair(chair_settings)
+    if len(traj):
+        chair.x_mm, chair.y_mm, chair.theta_rad = traj[0, 1:4]
+        cv2.polylines(img, [cv.px(chair.footprint())], True, _BGR["start"], 2)
+        cv2.polylines(img, [cv.px(traj[:, 1:3])], False, _BGR["path"], 2)
+        chair.x_mm, chair.y_mm, chair.theta_rad = traj[-1, 1:4]
+        cv2.polylines(img, [cv.px(chair.footprint())], True, _BGR["path"], 2)
+        for t, _ in result.refusals:
+            i = min(int(np.searchsorted(traj[:, 0], t)), len(traj) - 1)
+            c, r = cv.px(traj[i, 1:3])[0]
+            cv2.circle(img, (int(c), int(r)), 7, _BGR["refusal"], 2)
+        for t, _ in result.contacts:
+            i = min(int(np.searchsorted(traj[:, 0], t)), len(traj) - 1)
+            c, r = cv.px(traj[i, 1:3])[0]
+            cv2.drawMarker(img, (int(c), int(r)), _BGR["contact"], cv2.MARKER_TILTED_CROSS, 18, 3)
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for text, x, y in course.labels:
+        c, r = cv.px(np.array([[x, y]]))[0]
+        size = cv2.getTextSize(text, font, 0.4, 1)[0]
+        cv2.putText(img, text, (int(c - size[0] / 2), int(r + 4)), font, 0.4, _BGR["text"], 1)
+    legend = [
+        ("path", "path"),
+        ("start", "start"),
+        ("obstacle", "obstacle seen"),
+        ("dropoff", "drop-off seen"),
+        ("refusal", "refusal"),
+        ("contact", "collision/fall"),
+    ]
+    y = cv.h - 40
+    x = 10
+    for key, text in legend:
+        cv2.circle(img, (x + 5, y), 5, _BGR[key], -1)
+        cv2.putText(img, text, (x + 14, y + 4), font, 0.4, _BGR["text"], 1)
+        x += 20 + cv2.getTextSize(text, font, 0.4, 1)[0][0] + 10
+    scale_px = round(1000 * cv.s)
+    cv2.line(img, (10, cv.h - 15), (10 + scale_px, cv.h - 15), _BGR["text"], 2)
+    cv2.putText(img, "1 m", (16 + scale_px, cv.h - 11), font, 0.4, _BGR["text"], 1)
+    out = Path(path)
+    if not cv2.imwrite(str(out), img):
+        raise OSError(f"{out}: cannot write the PNG")
+    return out
+
+
+def summary_lines(result: SimResult) -> list[str]:
+    """The figures of a run as Markdown list items."""
+    t = result.timings
+    lines = [
+        f"- simulated time: {result.duration_s:.1f} s in {t.get('wall_s', 0):.1f} s wall "
+        f"({t.get('realtime_factor', 0):.1f}x real time)",
+        f"- distance driven: {result.distance_mm / 1000:.2f} m",
+        f"- collisions: {len(result.collisions)}, falls: {len(result.falls)}",
+        f"- closest approach of the footprint to a box or of a wheel to a drop-off: "
+        f"{result.min_clearance_mm:.0f} mm",
+        f"- refusals by the daemon: {len(result.refusals)}",
+        f"- perception: {int(t.get('perception_cycles', 0))} cycles, "
+        f"{t.get('perception_mean_ms', 0):.1f} ms mean, {t.get('perception_max_ms', 0):.1f} ms max",
+        f"- control step: {t.get('control_step_mean_ms', 0):.3f} ms mean, "
+        f"{t.get('control_step_max_ms', 0):.3f} ms max",
+        f"- control-unit watchdog trips: {int(t.get('watchdog_trips', 0))}",
+    ]
+    return lines
+
+
+def write_report(
+    out_dir: str | Path,
+    course: Course,
+    result: SimResult,
+    title: str,
+    notes: list[str] | None = None,
+    chair_settings: ChairSettings | None = None,
+) -> Path:
+    """Write ``report.md`` and ``course.png`` into ``out_dir``; returns the report's path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    draw_run(out / "course.png", course, result, chair_settings)
+    lines = [f"# {title}", "", *(notes or []), "", "## Figures", "", *summary_lines(result), ""]
+    lines += ["![course](course.png)", ""]
+    if result.contacts:
+        lines += ["## Collisions and falls", ""]
+        lines += [f"- t = {t:.2f} s: {c.kind} ({c.part})" for t, c in result.contacts]
+        lines.append("")
+    if result.refusals:
+        lines += ["## Refusals", ""]
+        shown = result.refusals[:40]
+        lines += [f"- t = {t:.2f} s: {msg}" for t, msg in shown]
+        if len(result.refusals) > len(shown):
+            lines.append(f"- ... and {len(result.refusals) - len(shown)} more")
+        lines.append("")
+    path = out / "report.md"
+    path.write_text("\n".join(lines), encoding="utf-8")
+    return path

@@ -1,0 +1,488 @@
+"""The closed-loop simulator: world + chair + control unit + rider + perception + daemon core.
+
+Fast mode (:meth:`Simulator.run`) steps every part on one **virtual clock**, so a minute of riding
+takes as long as the computation needs, not a minute — and stays honest, because every part reads
+the same virtual time: the rider's head pose, the control unit's watchdog, the daemon core's
+``step(now_s)`` and the capture time of each perception result. Perception's own computing time is
+measured on the wall clock and charged as virtual latency (a result is delivered
+``max(measured, perception_latency_s)`` after its capture), so a slow pipeline makes the chair
+react late in the simulation exactly as it would on the chair.
+
+Per physics tick (``physics_dt_s``, integer tick counts so rates never drift):
+
+* the rider: head pose → ``controller.on_tilt`` every ``tilt_period_s``; key presses →
+  ``controller.on_key``;
+* perception: every ``perception_period_s`` the laser dots are cast at the chair pose
+  (``world.cast_laser``) and, **if the control unit has actually switched the laser on**, turned
+  into a point cloud — ``truth`` (the cast dots with their true classes, for fast tests) or
+  ``pipeline`` (rendered mask/base captures through ``omnid.core.pipeline.perceive`` with a
+  calibration made by ``calibrate_from_capture`` from a rendered floor capture);
+* control: every ``control_period_s`` ``controller.step(now)`` → command → control unit →
+  status → ``controller.on_status``;
+* physics: the control unit applies its duties to the chair (the plant) for one tick;
+* safety truth: the chair's footprint against the world (collisions, falls).
+
+The controller is anything with the ``ControlCore`` contract (docs/interfaces.md); by default the
+daemon's own ``omnid.daemon.core.ControlCore``. :class:`OpenLoopDriver` plays fixed duties
+instead (for plant tests and for showing what happens without the daemon).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnid.config import require
+from omnid.core.geometry import StereoRig
+from omnid.core.laser import DotPattern
+from omnid.core.types import PointClass, PointCloud, StereoCapture
+from omnid.sim.chair import Chair, ChairSettings, Contact
+from omnid.sim.course import Course
+from omnid.sim.rider import HeadScript, KeyScript
+from omnid.sim.world import RigMount, cast_laser, rig_to_world
+
+log = logging.getLogger(__name__)
+
+PerceptionMode = Literal["truth", "pipeline", "off"]
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Rates and models of a simulated run (s, mm)."""
+
+    physics_dt_s: float = 0.01
+    control_period_s: float = 0.05
+    tilt_period_s: float = 0.01
+    perception_period_s: float = 0.2
+    perception_latency_s: float = 0.1  # at least this long from capture to result
+    perception: PerceptionMode = "truth"
+    truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
+    watchdog_s: float = 0.25  # the control unit stops the motors after this silence
+    stop_on_contact: bool = True  # end the run at the first collision or fall
+    record_period_s: float = 0.05
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "physics_dt_s",
+            "control_period_s",
+            "tilt_period_s",
+            "perception_period_s",
+            "watchdog_s",
+            "record_period_s",
+        ):
+            require(getattr(self, name) > 0, name, "must be positive")
+        require(self.perception_latency_s >= 0, "perception_latency_s", "must be ≥ 0")
+        require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
+
+    def ticks(self, period_s: float) -> int:
+        """A period as a whole number of physics ticks (at least 1)."""
+        return max(1, round(period_s / self.physics_dt_s))
+
+
+@dataclass
+class SimResult:
+    """What happened in a run. Times are virtual seconds; ``timings`` are wall-clock figures."""
+
+    duration_s: float
+    trajectory: NDArray[np.float64]  # (N, 4) t_s, x_mm, y_mm, theta_rad
+    commands: NDArray[np.float64]  # (M, 5) t_s, left_duty, right_duty, laser_on, enable
+    contacts: list[tuple[float, Contact]]
+    refusals: list[tuple[float, str]]
+    seen: NDArray[np.float64]  # (K, 3) world x_mm, y_mm, PointClass code of non-floor points
+    min_clearance_mm: float  # closest the footprint came to a box or a drop-off edge
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def collisions(self) -> list[tuple[float, Contact]]:
+        return [c for c in self.contacts if c[1].kind == "collision"]
+
+    @property
+    def falls(self) -> list[tuple[float, Contact]]:
+        return [c for c in self.contacts if c[1].kind == "fall"]
+
+    @property
+    def distance_mm(self) -> float:
+        """Path length of the axle midpoint, mm."""
+        if len(self.trajectory) < 2:
+            return 0.0
+        return float(np.sum(np.hypot(*np.diff(self.trajectory[:, 1:3], axis=0).T)))
+
+
+# -- the control unit --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SimStatus:
+    """The control unit's reply as the daemon sees it (fields of ``ControlUnitStatus``)."""
+
+    seq: int
+    left_clocks: int
+    right_clocks: int
+    laser_on: bool
+    faults: int
+    timestamp_s: float
+
+
+def _make_status(**kw: Any) -> Any:
+    """A ``ControlUnitStatus`` when the device layer provides it, else a :class:`SimStatus`."""
+    try:
+        from omnid.devices.control_unit import ControlUnitStatus  # type: ignore[attr-defined,unused-ignore]
+    except ImportError:
+        return SimStatus(**kw)
+    return ControlUnitStatus(**kw)
+
+
+class DirectControlUnit:
+    """The control unit's behaviour on the virtual clock, without the byte link.
+
+    It applies the latest command's duties (zero unless ``enable``), switches the laser as told,
+    stops both motors when no command arrived for ``watchdog_s`` (SPEC §4) and reports the
+    plant's clocks. The simulator uses it until the control-unit emulator (bytes through the
+    codec) is wired in.
+    """
+
+    def __init__(self, plant: Chair, watchdog_s: float = 0.25) -> None:
+        self.plant = plant
+        self.watchdog_s = watchdog_s
+        self.laser_on = False
+        self.left_duty = 0.0
+        self.right_duty = 0.0
+        self.last_command_s = -math.inf
+        self.seq = 0
+        self.watchdog_trips = 0
+
+    def exchange(self, command: Any, now_s: float) -> Any:
+        """Deliver one command at ``now_s``; return the reply."""
+        self.seq = (self.seq + 1) & 0xFFFF
+        self.last_command_s = now_s
+        on = bool(command.enable)
+        self.left_duty = float(command.left_duty) if on else 0.0
+        self.right_duty = float(command.right_duty) if on else 0.0
+        self.laser_on = bool(command.laser_on)
+        left, right = self.plant.clocks()
+        return _make_status(
+            seq=self.seq,
+            left_clocks=left,
+            right_clocks=right,
+            laser_on=self.laser_on,
+            faults=0,
+            timestamp_s=now_s,
+        )
+
+    def advance(self, now_s: float, dt_s: float) -> None:
+        """Run the plant for ``dt_s`` from ``now_s`` (with the watchdog applied)."""
+        if now_s - self.last_command_s > self.watchdog_s and (self.left_duty or self.right_duty):
+            log.warning("control unit: no command for %.3f s; motors stopped", self.watchdog_s)
+            self.watchdog_trips += 1
+            self.left_duty = self.right_duty = 0.0
+        self.plant.step(self.left_duty, self.right_duty, dt_s)
+
+
+# -- open-loop driving ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Command:
+    left_duty: float
+    right_duty: float
+    laser_on: bool = True
+    enable: bool = True
+
+
+class OpenLoopDriver:
+    """A controller that ignores its inputs and plays ``[(t_s, left_duty, right_duty), ...]``
+    (each held until the next). It is *not* a daemon: it shows what the chair does unguarded."""
+
+    def __init__(self, script: Sequence[tuple[float, float, float]]) -> None:
+        self.script = sorted((float(t), float(a), float(b)) for t, a, b in script)
+
+    def step(self, now_s: float) -> _Command:
+        left = right = 0.0
+        for t, a, b in self.script:
+            if t <= now_s:
+                left, right = a, b
+        return _Command(left, right)
+
+    def on_status(self, status: Any) -> None:
+        pass
+
+    def on_tilt(self, reading: Any) -> None:
+        pass
+
+    def on_key(self, command: str, now_s: float) -> None:
+        pass
+
+    def on_perception(self, cloud: PointCloud, capture_time_s: float) -> None:
+        pass
+
+
+# -- perception ---------------------------------------------------------------------------------
+
+
+class _RefusalLog(logging.Handler):
+    """Collects the daemon's refusal log records (every refusal is logged with its reason)."""
+
+    def __init__(self, clock: Callable[[], float]) -> None:
+        super().__init__(logging.INFO)
+        self.clock = clock
+        self.records: list[tuple[float, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        msg = record.getMessage()
+        if "refus" in msg.lower():
+            self.records.append((self.clock(), msg))
+
+
+def _perimeter(chair: Chair, per_side: int = 6) -> NDArray[np.float64]:
+    c = chair.footprint()
+    t = np.linspace(0.0, 1.0, per_side, endpoint=False)[:, None]
+    return np.vstack([c[i] + t * (c[(i + 1) % 4] - c[i]) for i in range(4)])
+
+
+def _clearance(points: NDArray[np.float64], rects: NDArray[np.float64]) -> float:
+    """Smallest distance from any point (N, 2) to any rectangle (R, 4: x0, x1, y0, y1), mm."""
+    if len(rects) == 0:
+        return math.inf
+    dx = np.maximum(
+        np.maximum(rects[None, :, 0] - points[:, None, 0], 0.0),
+        points[:, None, 0] - rects[None, :, 1],
+    )
+    dy = np.maximum(
+        np.maximum(rects[None, :, 2] - points[:, None, 1], 0.0),
+        points[:, None, 1] - rects[None, :, 3],
+    )
+    return float(np.hypot(dx, dy).min())
+
+
+class Simulator:
+    """One simulated chair in one course, driven by a controller on a virtual clock."""
+
+    def __init__(
+        self,
+        course: Course,
+        controller: Any,
+        settings: SimSettings | None = None,
+        chair_settings: ChairSettings | None = None,
+        rider: HeadScript | None = None,
+        keys: KeyScript | None = None,
+        mount: RigMount | None = None,
+        rig: StereoRig | None = None,
+        pattern: DotPattern | None = None,
+        progress: Callable[[float, Simulator], None] | None = None,
+    ) -> None:
+        self.course = course
+        self.controller = controller
+        self.settings = settings or SimSettings()
+        self.chair = Chair(chair_settings, pose=course.start_pose)
+        self.rider = rider
+        self.keys = keys
+        self.mount = mount or RigMount()
+        self.rig = rig or StereoRig.nominal(floor_depth_mm=self.mount.height_mm)
+        self.pattern = pattern or DotPattern()
+        self.control_unit = DirectControlUnit(self.chair, self.settings.watchdog_s)
+        self.progress = progress
+        self.now_s = 0.0
+        self._rng = np.random.default_rng(self.settings.seed)
+        self._calib: Any = None
+        box_rects = [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
+        drop_rects = [
+            (d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs
+        ]
+        self._box_rects = np.array(box_rects, dtype=np.float64).reshape(-1, 4)
+        self._drop_rects = np.array(drop_rects, dtype=np.float64).reshape(-1, 4)
+
+    # -- camera views -------------------------------------------------------------------------
+
+    def laser_hits(self) -> Any:
+        """``cast_laser`` at the chair's current pose."""
+        return cast_laser(self.course.world, self.chair.pose, self.mount, self.pattern, self.rig)
+
+    def render(self, laser_on: bool | None = None, seed: int | None = None) -> StereoCapture:
+        """A mask/base capture at the current pose; the base shows dots only if the laser is on
+        (by default: as the control unit has switched it)."""
+        from omnid.sim.render import RenderOptions, render_camera_pair
+
+        on = self.control_unit.laser_on if laser_on is None else laser_on
+        hits = self.laser_hits()
+        rng = np.random.default_rng(self._rng.integers(1 << 31) if seed is None else seed)
+        opts = RenderOptions()
+        images: list[NDArray[np.uint8]] = []
+        for cam, vis in ((self.rig.cam1, hits.visible1), (self.rig.cam2, hits.visible2)):
+            rc = cam.project(hits.xyz[vis]) if on else np.zeros((0, 2))
+            images.extend(render_camera_pair(cam, rc, opts, rng))
+        return StereoCapture(images[0], images[1], images[2], images[3], self.now_s)
+
+    def frame(self) -> tuple[float, NDArray[np.uint8], NDArray[np.uint8]]:
+        """What each camera sees now (the base images), for the frame server."""
+        cap = self.render()
+        return self.now_s, cap.base1, cap.base2
+
+    # -- perception ---------------------------------------------------------------------------
+
+    def _truth_cloud(self) -> PointCloud:
+        hits = self.laser_hits()
+        vis = hits.visible
+        xyz = hits.xyz[vis]
+        s = self.settings.truth_noise_mm
+        if s > 0:
+            xyz = xyz + self._rng.normal(0.0, s, xyz.shape)
+        cov = np.broadcast_to(np.eye(3) * s * s, (len(xyz), 3, 3)).copy()
+        return PointCloud(
+            xyz=xyz,
+            cov=cov,
+            pixels=self.rig.project(xyz),
+            classes=hits.truth[vis].astype(np.uint8),
+            floor_depth_mm=self.mount.height_mm,
+        )
+
+    def _pipeline_cloud(self) -> PointCloud:
+        from omnid.core.pipeline import perceive  # type: ignore[import-not-found,unused-ignore]
+
+        if self._calib is None:
+            from omnid.core.calibration import (  # type: ignore[import-not-found,unused-ignore]
+                calibrate_from_capture,
+            )
+            from omnid.sim.render import render_capture
+
+            floor = self.pattern.on_plane(self.mount.height_mm)
+            cap = render_capture(self.rig, floor, seed=self.settings.seed)
+            self._calib = calibrate_from_capture(cap, self.mount.height_mm, self.rig.baseline_mm)
+        cloud: PointCloud = perceive(self.render(laser_on=self.control_unit.laser_on), self._calib)
+        return cloud
+
+    def perceive_now(self) -> PointCloud:
+        """The point cloud the daemon would get from a capture at the current pose."""
+        mode = self.settings.perception
+        if mode == "off" or not self.control_unit.laser_on:
+            return PointCloud(floor_depth_mm=self.mount.height_mm)
+        if mode == "truth":
+            return self._truth_cloud()
+        return self._pipeline_cloud()
+
+    # -- the loop -----------------------------------------------------------------------------
+
+    def run(self, duration_s: float) -> SimResult:
+        """Simulate ``duration_s`` virtual seconds; returns the trajectory, contacts, refusals,
+        what perception saw and timing figures."""
+        require(duration_s > 0, "duration_s", "must be positive")
+        s = self.settings
+        dt = s.physics_dt_s
+        n_ticks = round(duration_s / dt)
+        k_ctrl, k_tilt = s.ticks(s.control_period_s), s.ticks(s.tilt_period_s)
+        k_perc, k_rec = s.ticks(s.perception_period_s), s.ticks(s.record_period_s)
+
+        tilt_type = None
+        if self.rider is not None:
+            from omnid.devices.tilt import TiltReading  # type: ignore[import-not-found,attr-defined,unused-ignore]
+
+            tilt_type = TiltReading
+
+        refusal_log = _RefusalLog(lambda: self.now_s)
+        daemon_log = logging.getLogger("omnid.daemon")
+        daemon_log.addHandler(refusal_log)
+        traj: list[tuple[float, float, float, float]] = []
+        cmds: list[tuple[float, float, float, float, float]] = []
+        contacts: list[tuple[float, Contact]] = []
+        seen: list[NDArray[np.float64]] = []
+        pending: list[tuple[float, float, PointCloud, tuple[float, float, float]]] = []
+        t_perc: list[float] = []
+        t_ctrl: list[float] = []
+        min_clear = math.inf
+        wall0 = time.perf_counter()
+        last_progress = -math.inf
+        try:
+            for k in range(n_ticks + 1):
+                now = k * dt
+                self.now_s = now
+                if self.rider is not None and tilt_type is not None and k % k_tilt == 0:
+                    roll, pitch = self.rider.at(now)
+                    self.controller.on_tilt(tilt_type(roll, pitch, now))
+                if self.keys is not None:
+                    for _, command in self.keys.between(now - dt, now):
+                        self.controller.on_key(command, now)
+                # Deliver finished perception results (charged with their computing time).
+                while pending and pending[0][0] <= now + 1e-9:
+                    _, t_cap, cloud, pose = pending.pop(0)
+                    self.controller.on_perception(cloud, t_cap)
+                    keep = cloud.classes != PointClass.FLOOR
+                    if np.any(keep):
+                        w = rig_to_world(cloud.xyz[keep], pose, self.mount)
+                        seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
+                if k % k_perc == 0:
+                    w0 = time.perf_counter()
+                    cloud = self.perceive_now()
+                    took = time.perf_counter() - w0
+                    t_perc.append(took)
+                    ready = now + max(took, s.perception_latency_s)
+                    pending.append((ready, now, cloud, self.chair.pose))
+                if k % k_ctrl == 0:
+                    w0 = time.perf_counter()
+                    command = self.controller.step(now)
+                    t_ctrl.append(time.perf_counter() - w0)
+                    status = self.control_unit.exchange(command, now)
+                    self.controller.on_status(status)
+                    cmds.append(
+                        (
+                            now,
+                            float(command.left_duty),
+                            float(command.right_duty),
+                            float(command.laser_on),
+                            float(command.enable),
+                        )
+                    )
+                if k % k_rec == 0:
+                    traj.append((now, *self.chair.pose))
+                    min_clear = min(
+                        min_clear,
+                        _clearance(_perimeter(self.chair), self._box_rects),
+                        _clearance(
+                            np.array(list(self.chair.support_points().values())), self._drop_rects
+                        ),
+                    )
+                    if self.progress is not None and now - last_progress >= 1.0:
+                        last_progress = now
+                        self.progress(now, self)
+                found = self.chair.contacts(self.course.world)
+                new = [c for c in found if all(c != old for _, old in contacts)]
+                for c in new:
+                    log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
+                    contacts.append((now, c))
+                if new and s.stop_on_contact:
+                    traj.append((now, *self.chair.pose))
+                    break
+                if k < n_ticks:
+                    self.control_unit.advance(now, dt)
+        finally:
+            daemon_log.removeHandler(refusal_log)
+        wall = time.perf_counter() - wall0
+        refusals = list(refusal_log.records)
+        refusals += [(float(t), str(r)) for t, r in getattr(self.controller, "refusals", ())]
+        timings = {
+            "wall_s": wall,
+            "virtual_s": self.now_s,
+            "realtime_factor": self.now_s / wall if wall > 0 else math.inf,
+            "perception_mean_ms": 1e3 * float(np.mean(t_perc)) if t_perc else 0.0,
+            "perception_max_ms": 1e3 * float(np.max(t_perc)) if t_perc else 0.0,
+            "control_step_mean_ms": 1e3 * float(np.mean(t_ctrl)) if t_ctrl else 0.0,
+            "control_step_max_ms": 1e3 * float(np.max(t_ctrl)) if t_ctrl else 0.0,
+            "perception_cycles": float(len(t_perc)),
+            "watchdog_trips": float(self.control_unit.watchdog_trips),
+        }
+        return SimResult(
+            duration_s=self.now_s,
+            trajectory=np.array(traj, dtype=np.float64).reshape(-1, 4),
+            commands=np.array(cmds, dtype=np.float64).reshape(-1, 5),
+            contacts=contacts,
+            refusals=refusals,
+            seen=np.vstack(seen) if seen else np.zeros((0, 3)),
+            min_clearance_mm=min_clear,
+            timings=timings,
+        )

@@ -1,0 +1,184 @@
+"""The closed-loop simulator on its virtual clock: contacts, laser honesty, latency, watchdog."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from omnid.core.types import PointClass, PointCloud
+from omnid.sim.chair import ChairSettings
+from omnid.sim.course import Course, builtin_course, empty_room
+from omnid.sim.simulator import DirectControlUnit, OpenLoopDriver, SimSettings, Simulator
+from omnid.sim.world import Box, DropOff, World
+
+STRAIGHT = ChairSettings(right_gain=1.0)  # no gain mismatch: drives straight open loop
+
+
+def _course(world: World) -> Course:
+    return Course("test", world, (0.0, 0.0, 0.0), (-1000.0, 5000.0), (-2000.0, 2000.0))
+
+
+def test_open_loop_chair_hits_the_wall_and_the_run_stops_there():
+    sim = Simulator(empty_room(3000.0), OpenLoopDriver([(0.0, 1.0, 1.0)]), chair_settings=STRAIGHT)
+    result = sim.run(30.0)
+    assert [c.kind for _, c in result.contacts] == ["collision"]
+    t_hit = result.contacts[0][0]
+    # Front wall at x = 2500, footprint front 500 mm ahead of the axle: contact at x ≈ 2000 mm,
+    # reached at full speed 235.5 mm/s after the motor lag (0.15 s).
+    assert result.trajectory[-1, 1] == pytest.approx(2000.0, abs=5.0)
+    assert t_hit == pytest.approx(2000.0 / STRAIGHT.max_speed_mm_s + 0.15, abs=0.05)
+    assert result.duration_s == pytest.approx(t_hit)
+    assert result.min_clearance_mm == 0.0
+
+
+def test_open_loop_chair_falls_down_the_stairs():
+    world = World(dropoffs=(DropOff(1000.0, 3000.0, -2000.0, 2000.0, 170.0),))
+    result = Simulator(
+        _course(world), OpenLoopDriver([(0.0, 0.8, 0.8)]), chair_settings=STRAIGHT
+    ).run(20.0)
+    assert [c.kind for _, c in result.falls] == ["fall"]
+    # The front casters (430 mm ahead of the axle) go over the edge first.
+    assert result.falls[0][1].part.endswith("front wheel")
+    assert result.trajectory[-1, 1] == pytest.approx(1000.0 - 430.0, abs=3.0)
+
+
+def test_stopped_chair_in_the_builtin_course_touches_nothing():
+    result = Simulator(builtin_course(), OpenLoopDriver([(0.0, 0.0, 0.0)])).run(2.0)
+    assert result.contacts == [] and result.distance_mm == 0.0
+    assert result.min_clearance_mm > 200.0
+
+
+class _Probe(OpenLoopDriver):
+    """Records what the simulator hands a controller, and when (virtual time)."""
+
+    def __init__(self, laser_on: bool = True, duty: float = 0.0) -> None:
+        super().__init__([(0.0, duty, duty)])
+        self.laser_on = laser_on
+        self.now = 0.0
+        self.sim: Simulator | None = None
+        self.clouds: list[tuple[float, float, PointCloud]] = []
+        self.statuses: list = []
+
+    def step(self, now_s):
+        self.now = now_s
+        cmd = super().step(now_s)
+        return type(cmd)(cmd.left_duty, cmd.right_duty, laser_on=self.laser_on, enable=True)
+
+    def on_status(self, status):
+        self.statuses.append(status)
+
+    def on_perception(self, cloud, capture_time_s):
+        self.clouds.append((self.sim.now_s if self.sim else math.nan, capture_time_s, cloud))
+
+
+def test_perception_sees_a_box_ahead_with_true_classes_and_latency():
+    world = World(boxes=(Box(1500.0, 1800.0, -400.0, 400.0, 500.0),))
+    probe = _Probe()
+    settings = SimSettings(perception_latency_s=0.15, truth_noise_mm=0.0)
+    sim = Simulator(_course(world), probe, settings=settings)
+    probe.sim = sim
+    sim.run(1.0)
+    assert probe.clouds
+    for delivered_at, captured_at, _ in probe.clouds:
+        assert delivered_at - captured_at >= 0.15 - 1e-9
+    # The first capture happened before the first command switched the laser on (t = 0 is the
+    # same tick; perception runs first): it must be empty. Later ones see floor and the box.
+    assert len(probe.clouds[0][2]) == 0
+    cloud = probe.clouds[-1][2]
+    obstacle = cloud.classes == PointClass.OBSTACLE
+    assert np.count_nonzero(obstacle) > 20
+    assert np.count_nonzero(cloud.classes == PointClass.FLOOR) > 50
+    # Box face at world x = 1500: rig X = 1500 − 300 (rig mount offset).
+    assert np.min(cloud.xyz[obstacle, 0]) == pytest.approx(1200.0, abs=1.0)
+
+
+def test_laser_off_gives_no_dots_and_an_undotted_base_frame():
+    probe = _Probe(laser_on=False)
+    sim = Simulator(empty_room(), probe, settings=SimSettings(truth_noise_mm=0.0))
+    probe.sim = sim
+    sim.run(0.5)
+    assert all(len(c) == 0 for _, _, c in probe.clouds)
+    off = sim.render(seed=1)
+    on = sim.render(laser_on=True, seed=1)
+    diff_off = off.base1.astype(int) - off.mask1.astype(int)
+    diff_on = on.base1.astype(int) - on.mask1.astype(int)
+    assert diff_off.max() < 30  # sensor noise only
+    assert np.count_nonzero(diff_on > 60) > 100  # the dots
+
+
+def test_status_carries_the_plants_clocks():
+    probe = _Probe(duty=0.5)
+    sim = Simulator(empty_room(), probe, chair_settings=STRAIGHT)
+    sim.run(2.0)
+    assert [s.seq for s in probe.statuses] == list(range(1, len(probe.statuses) + 1))
+    assert all(s.laser_on for s in probe.statuses)
+    clocks = [s.left_clocks for s in probe.statuses]
+    assert clocks == sorted(clocks) and clocks[-1] >= 6  # 2 s at ~118 mm/s: ~7 clocks of 31.4
+    assert abs(clocks[-1] - sim.chair.clocks()[0]) <= 1  # last reply is one tick old at most
+
+
+def test_control_unit_watchdog_stops_a_silent_link():
+    from omnid.sim.chair import Chair
+
+    chair = Chair(STRAIGHT)
+    cu = DirectControlUnit(chair, watchdog_s=0.25)
+    cu.exchange(OpenLoopDriver([(0.0, 1.0, 1.0)]).step(0.0), 0.0)
+    for k in range(100):  # 1 s with no further command
+        cu.advance(k * 0.01, 0.01)
+    assert cu.watchdog_trips == 1
+    assert (cu.left_duty, cu.right_duty) == (0.0, 0.0)
+    # Stopped after ~0.26 s of driving plus the lag run-out: well under 0.26 s·v_max + τ·v_max.
+    assert chair.x_mm < STRAIGHT.max_speed_mm_s * (0.27 + 0.15)
+    assert math.isclose(chair.left_speed_mm_s, 0.0, abs_tol=5.0)  # e^(−0.74/0.15) of full speed
+
+
+def test_disabled_command_brakes_whatever_the_duties_say():
+    from omnid.sim.chair import Chair
+
+    chair = Chair(STRAIGHT)
+    cu = DirectControlUnit(chair)
+
+    class _Cmd:
+        left_duty, right_duty, laser_on, enable = 1.0, 1.0, False, False
+
+    cu.exchange(_Cmd(), 0.0)
+    cu.advance(0.0, 0.1)
+    assert chair.pose == (0.0, 0.0, 0.0)
+
+
+def test_simulate_command_writes_a_report_with_the_crash(tmp_path, capsys):
+    import cv2
+
+    from omnid.cli import main
+
+    out = tmp_path / "run"
+    code = main(
+        [
+            "simulate",
+            "--course",
+            "empty-room",
+            "--drive",
+            "0:1:1",
+            "--duration-s",
+            "20",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    report = (out / "report.md").read_text()
+    assert "collisions: 1" in report and "collision (footprint)" in report
+    png = cv2.imread(str(out / "course.png"))
+    assert png is not None and png.shape[0] > 300 and png.shape[1] > 200
+    assert "report:" in capsys.readouterr().out
+
+
+def test_simulate_command_rejects_a_bad_drive_in_one_line(capsys):
+    from omnid.cli import main
+
+    assert main(["simulate", "--drive", "0:2:1", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--drive '0:2:1'" in err[0]
