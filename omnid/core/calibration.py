@@ -628,3 +628,68 @@ def calibrate_from_capture(
         lattice=lattice,
         residuals=residuals,
     )
+
+
+# --------------------------------------------------------------------------------------------
+# The thesis' floor calibration tables (6.3.1.3), for comparison
+# --------------------------------------------------------------------------------------------
+
+
+def _fill_by_neighbours(values: NDArray[np.float64], inside: NDArray[np.bool_]) -> None:
+    """Fill NaN pixels inside ``inside`` with the mean of their known 8-neighbours, repeatedly
+    (the thesis' arithmetic average of the neighbours' angles), in place."""
+    for _ in range(64):
+        missing = np.isnan(values) & inside
+        if not missing.any():
+            return
+        known = np.isfinite(values)
+        total = cv2.boxFilter(np.where(known, values, 0.0), -1, (3, 3), normalize=False)
+        count = cv2.boxFilter(known.astype(np.float64), -1, (3, 3), normalize=False)
+        fill = missing & (count > 0)
+        if not fill.any():
+            return
+        values[fill] = total[fill] / count[fill]
+
+
+def floor_angle_tables(
+    calib: Calibration,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Per-pixel angle tables θ1 (camera 1), θ2 (camera 2) and δ (camera 1), rad (6.3.1.3).
+
+    Every camera-1 pixel inside the mirror disk is placed on the floor by the equidistance
+    principle, eqs. 6.17/6.18 (X = X_ref − R_r·(r − r_ref), Y = Y_ref + R_c·(c − c_ref) with the
+    mirror centre as reference pixel, R = H/(f/K) mm per pixel, rotation undone; the column sign
+    follows SPEC §2). θ_i is the angle of the floor point seen from mirror i against the Y axis,
+    atan2(X, Y − Y_i); δ is its incidence angle, eq. 6.19 (δ = atan(√(X² + (Y − Y_1)²)/H)).
+    θ2 is stored at the camera-2 pixel that eqs. 6.12/6.13 match to each camera-1 pixel
+    (rounded to integers, as the thesis does); camera-2 pixels left unmatched get the average
+    of their neighbours. Pixels outside the disks are NaN.
+    """
+    rig = calib.rig
+    c1, c2 = rig.cam1, rig.cam2
+    rows, cols = c1.image_shape
+    rr, cc = np.mgrid[0:rows, 0:cols]
+    rc = np.column_stack([rr.ravel(), cc.ravel()]).astype(np.float64)
+    inside1 = c1.in_disk(rc).reshape(rows, cols)
+    inside2 = c2.in_disk(rc).reshape(rows, cols)
+    H = rig.floor_depth_mm
+    off = c1.ideal_offsets(rc)
+    R = H / c1.f_over_k_px  # mm per pixel on the floor (equidistance)
+    X = 0.0 - R * off[:, 0]  # eq. 6.17, reference = the mirror centre (X_ref = 0)
+    Y = c1.y_mm + R * off[:, 1]  # eq. 6.18, Y_ref = Y_1
+    theta1 = np.arctan2(X, Y - c1.y_mm).reshape(rows, cols)
+    delta = np.arctan(np.hypot(X, Y - c1.y_mm) / H).reshape(rows, cols)  # eq. 6.19
+    theta1[~inside1] = np.nan
+    delta[~inside1] = np.nan
+    from omnid.core.matching import predict_thesis
+
+    sel = inside1.ravel()
+    q2 = np.rint(predict_thesis(calib.row_coeffs, calib.col_coeffs, rc[sel]))
+    ok = (q2[:, 0] >= 0) & (q2[:, 0] < rows) & (q2[:, 1] >= 0) & (q2[:, 1] < cols)
+    r2 = q2[ok, 0].astype(np.intp)
+    k2 = q2[ok, 1].astype(np.intp)
+    theta2 = np.full((rows, cols), np.nan)
+    theta2[r2, k2] = np.arctan2(X[sel][ok], Y[sel][ok] - c2.y_mm)
+    theta2[~inside2] = np.nan
+    _fill_by_neighbours(theta2, inside2)
+    return theta1, theta2, delta

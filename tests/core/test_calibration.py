@@ -155,3 +155,24 @@ def test_thesis_polynomials_three_step_refinement() -> None:
     pred = predict_thesis(poly.row_coeffs, poly.col_coeffs, truth[:, :2])
     assert np.max(np.abs(pred - truth[:, 2:])) < 0.6
     assert poly.col_rms_px < 0.3
+
+
+def test_floor_angle_tables_match_the_geometry(calib: Calibration, rig: StereoRig) -> None:
+    from omnid.core.calibration import floor_angle_tables
+
+    theta1, theta2, delta = floor_angle_tables(calib)
+    xyz = DotPattern().on_plane(H)
+    px = rig.project(xyz)
+    vis = rig.visible(px, margin_px=3.0)
+    xyz, px = xyz[vis], px[vis]
+    r1, c1 = np.rint(px[:, 0]).astype(int), np.rint(px[:, 1]).astype(int)
+    r2, c2 = np.rint(px[:, 2]).astype(int), np.rint(px[:, 3]).astype(int)
+    want1 = np.arctan2(xyz[:, 0], xyz[:, 1] + 100.0)
+    want2 = np.arctan2(xyz[:, 0], xyz[:, 1] - 100.0)
+    want_d = np.arctan(np.hypot(xyz[:, 0], xyz[:, 1] + 100.0) / H)
+    # angles read at the rounded pixel: within a pixel’s angular size (~1° at 60 px from centre)
+    assert np.median(np.abs(theta1[r1, c1] - want1)) < np.radians(1.0)
+    assert np.median(np.abs(theta2[r2, c2] - want2)) < np.radians(1.0)
+    assert np.median(np.abs(delta[r1, c1] - want_d)) < np.radians(0.2)
+    disk2 = calib.rig.cam2.in_disk(np.argwhere(np.ones((480, 640), bool)).astype(float))
+    assert np.isfinite(theta2.ravel()[disk2]).mean() > 0.99  # neighbour averaging filled it
