@@ -63,6 +63,7 @@ class SimSettings:
     perception_period_s: float = 0.2
     perception_latency_s: float = 0.1  # at least this long from capture to result
     perception: PerceptionMode = "truth"
+    control_unit: Literal["emulator", "direct"] = "emulator"
     truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
     watchdog_s: float = 0.25  # the control unit stops the motors after this silence
     stop_on_contact: bool = True  # end the run at the first collision or fall
@@ -186,6 +187,104 @@ class DirectControlUnit:
         self.plant.step(self.left_duty, self.right_duty, dt_s)
 
 
+class EmulatedControlUnit:
+    """The project's control-unit emulator (``omnid.devices.emulators.control_unit``) on the
+    virtual clock, every command and reply passing as bytes through the protocol codec.
+
+    It is the same code that serves a pty on the bench: it enforces its own watchdog, switches
+    the laser relay with its delay, and integrates the plant (the chair) lazily up to the clock.
+    """
+
+    def __init__(self, plant: Chair, watchdog_s: float = 0.25) -> None:
+        from omnid.devices import cu_codec as codec  # type: ignore[attr-defined,unused-ignore]
+        from omnid.devices.emulators.control_unit import (  # type: ignore[import-not-found,unused-ignore]
+            ControlUnitEmulator,
+        )
+
+        self._codec = codec
+        self._t = 0.0
+        self.emulator = ControlUnitEmulator(
+            plant=plant, clock=lambda: self._t, default_watchdog_s=watchdog_s
+        )
+        self._parser = codec.FrameParser(accept=(codec.TYPE_REPLY,))
+        self._seq = 0
+        self._raw: tuple[int, int] | None = None
+        self._clocks = (0, 0)
+        self.missed_replies = 0
+
+    @property
+    def laser_on(self) -> bool:
+        return bool(self.emulator.laser_on)
+
+    @property
+    def watchdog_trips(self) -> int:
+        return int(self.emulator.watchdog_trips)
+
+    def exchange(self, command: Any, now_s: float) -> Any:
+        """Encode ``command``, feed the bytes to the emulator at ``now_s``, decode its reply
+        (None when it gives none)."""
+        from omnid.devices.control_unit import (  # type: ignore[import-not-found,unused-ignore]
+            ControlUnitStatus,
+            WheelCommand,
+        )
+
+        codec = self._codec
+        self._t = now_s
+        self._seq = (self._seq + 1) & 0xFF
+        cmd = WheelCommand(
+            float(command.left_duty),
+            float(command.right_duty),
+            laser_on=bool(command.laser_on),
+            enable=bool(command.enable),
+        )
+        reply = self.emulator.handle_bytes(codec.encode_command(cmd.to_frame(self._seq)))
+        frames = [
+            f
+            for f in self._parser.feed(reply)
+            if isinstance(f, codec.ReplyFrame) and f.seq == self._seq
+        ]
+        if not frames:
+            self.missed_replies += 1
+            return None
+        rep = frames[-1]
+        raw = (rep.left_clocks, rep.right_clocks)
+        if self._raw is not None:
+            self._clocks = (
+                self._clocks[0] + codec.unwrap_int32(self._raw[0], raw[0]),
+                self._clocks[1] + codec.unwrap_int32(self._raw[1], raw[1]),
+            )
+        else:
+            self._clocks = raw
+        self._raw = raw
+        return ControlUnitStatus(
+            seq=rep.seq,
+            left_clocks=self._clocks[0],
+            right_clocks=self._clocks[1],
+            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
+            faults=rep.faults,
+            timestamp_s=now_s,
+            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
+            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
+            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
+        )
+
+    def advance(self, now_s: float, dt_s: float) -> None:
+        """Let the emulator drive the plant up to ``now_s + dt_s``."""
+        self._t = now_s + dt_s
+        _ = self.emulator.clocks  # integrates the plant to the clock
+
+
+def make_control_unit(plant: Chair, kind: str, watchdog_s: float) -> Any:
+    """``emulator`` (bytes through the codec; falls back to ``direct`` when the device layer is
+    absent, with a warning) or ``direct``."""
+    if kind == "emulator":
+        try:
+            return EmulatedControlUnit(plant, watchdog_s)
+        except ImportError as exc:
+            log.warning("control-unit emulator unavailable (%s); using the direct model", exc)
+    return DirectControlUnit(plant, watchdog_s)
+
+
 # -- open-loop driving ---------------------------------------------------------------------------
 
 
@@ -287,7 +386,9 @@ class Simulator:
         self.mount = mount or RigMount()
         self.rig = rig or StereoRig.nominal(floor_depth_mm=self.mount.height_mm)
         self.pattern = pattern or DotPattern()
-        self.control_unit = DirectControlUnit(self.chair, self.settings.watchdog_s)
+        self.control_unit = make_control_unit(
+            self.chair, self.settings.control_unit, self.settings.watchdog_s
+        )
         self.progress = progress
         self.now_s = 0.0
         self._rng = np.random.default_rng(self.settings.seed)
@@ -428,7 +529,8 @@ class Simulator:
                     command = self.controller.step(now)
                     t_ctrl.append(time.perf_counter() - w0)
                     status = self.control_unit.exchange(command, now)
-                    self.controller.on_status(status)
+                    if status is not None:
+                        self.controller.on_status(status)
                     cmds.append(
                         (
                             now,
@@ -475,6 +577,7 @@ class Simulator:
             "control_step_max_ms": 1e3 * float(np.max(t_ctrl)) if t_ctrl else 0.0,
             "perception_cycles": float(len(t_perc)),
             "watchdog_trips": float(self.control_unit.watchdog_trips),
+            "bytes_link": float(isinstance(self.control_unit, EmulatedControlUnit)),
         }
         return SimResult(
             duration_s=self.now_s,

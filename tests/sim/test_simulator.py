@@ -113,7 +113,8 @@ def test_status_carries_the_plants_clocks():
     sim = Simulator(empty_room(), probe, chair_settings=STRAIGHT)
     sim.run(2.0)
     assert [s.seq for s in probe.statuses] == list(range(1, len(probe.statuses) + 1))
-    assert all(s.laser_on for s in probe.statuses)
+    # A relay may take a moment after the first command (the emulator's: 20 ms).
+    assert all(s.laser_on for s in probe.statuses[1:])
     clocks = [s.left_clocks for s in probe.statuses]
     assert clocks == sorted(clocks) and clocks[-1] >= 6  # 2 s at ~118 mm/s: ~7 clocks of 31.4
     assert abs(clocks[-1] - sim.chair.clocks()[0]) <= 1  # last reply is one tick old at most
