@@ -1,0 +1,187 @@
+"""3-D positions of matched laser dots from their two image positions (thesis 6.1; SPEC §2).
+
+Two methods, same contract::
+
+    triangulate(rig, pixels (N, 4) r1 c1 r2 c2 px, method="best" | "thesis", pixel_sigma_px=0.3)
+        -> xyz (N, 3) mm, cov (N, 3, 3) mm²
+
+``thesis``
+    The thesis' closed form: X and Y from the intersection of the two horizontal lines through
+    each mirror axis (eqs. 6.3–6.6), Z from mirror 1 alone (eqs. 6.8, 6.9), on the raw offsets
+    from each camera's mirror centre (the thesis knows no camera rotation). It uses three of the
+    four coordinates' information unevenly and is ill-conditioned near the plane X = 0 (beside
+    the baseline): there the values come out ±inf/NaN or far off, and the covariance — first-order
+    propagation of isotropic pixel noise through the analytic partials of eqs. 6.10/6.11, see
+    :mod:`omnid.core.errormodel` — grows without bound, which is the honest flag.
+
+``best``
+    All four coordinates, weighted linear least squares. With ideal offsets (rotation undone,
+    :meth:`MirrorCamera.ideal_offsets`) and ``a_i = (f/K)_i`` the projection of SPEC §2 reads::
+
+        x_i = −a_i·p,   y_i = a_i·(q − Y_i·u),   p = X/Z, q = Y/Z, u = 1/Z
+
+    — linear in θ = (p, q, u). Four equations, three unknowns, and the design matrix A depends on
+    the rig only, so the estimate is one constant 3x4 matrix applied to every point:
+    θ = (AᵀA)⁻¹Aᵀ·b. Then X = p/u, Y = q/u, Z = 1/u. With isotropic pixel noise σ this is the
+    maximum-likelihood estimate; cov θ = σ²(AᵀA)⁻¹ is propagated to (X, Y, Z) through the
+    Jacobian of (p/u, q/u, 1/u). Well conditioned everywhere in front of the mirrors, including
+    X = 0. Points with u ≤ 0 (at or behind the mirror plane) give NaN.
+
+    The one redundant equation measures whether the two viewing rays meet: the least-squares
+    residual ‖b − Aθ‖ (px) is :func:`ray_residual_px`. For an ideal rig it is
+    |r1 − r2|/√2 (the rows of a true pair agree); the matcher uses it to reject pairs whose rays
+    do not meet (under the noise model it is σ·|N(0, 1)|).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from omnid.core.errormodel import thesis_jacobian, thesis_xyz
+from omnid.core.geometry import MIRROR_CONSTANT_K, StereoRig
+from omnid.errors import InputError
+
+TriangulationMethod = Literal["thesis", "best"]
+
+__all__ = [
+    "TriangulationMethod",
+    "best_design_matrix",
+    "ray_residual_px",
+    "thesis_offsets",
+    "triangulate",
+]
+
+
+def _as_pixels4(pixels: ArrayLike) -> NDArray[np.float64]:
+    arr = np.asarray(pixels, dtype=np.float64)
+    if arr.ndim == 1 and arr.size == 4:
+        arr = arr.reshape(1, 4)
+    if arr.size == 0:
+        return np.zeros((0, 4))
+    if arr.ndim != 2 or arr.shape[1] != 4:
+        raise InputError(
+            f"triangulate: expected pixels of shape (N, 4) r1 c1 r2 c2, got {arr.shape}"
+        )
+    return arr
+
+
+def _check_sigma(pixel_sigma_px: float) -> float:
+    sigma = float(pixel_sigma_px)
+    if not (math.isfinite(sigma) and sigma >= 0.0):
+        raise InputError(
+            f"triangulate: pixel_sigma_px must be finite and ≥ 0, got {pixel_sigma_px}"
+        )
+    return sigma
+
+
+def thesis_offsets(rig: StereoRig, pixels: ArrayLike) -> NDArray[np.float64]:
+    """Raw offsets (N, 4) = (x1, y1, x2, y2) px from each camera's mirror centre (thesis 6.1).
+
+    ``x_ip = r_i − r_mi``, ``y_ip = c_i − c_mi``; no rotation is undone (the thesis has none).
+    """
+    q = _as_pixels4(pixels)
+    c1, c2 = rig.cam1, rig.cam2
+    centre = np.array([c1.center_row_px, c1.center_col_px, c2.center_row_px, c2.center_col_px])
+    return q - centre
+
+
+def best_design_matrix(rig: StereoRig) -> NDArray[np.float64]:
+    """The 4x3 design matrix A of the ``best`` method: (x1, y1, x2, y2) = A·(p, q, u)."""
+    a1, a2 = rig.cam1.f_over_k_px, rig.cam2.f_over_k_px
+    y1, y2 = rig.cam1.y_mm, rig.cam2.y_mm
+    return np.array(
+        [
+            [-a1, 0.0, 0.0],
+            [0.0, a1, -a1 * y1],
+            [-a2, 0.0, 0.0],
+            [0.0, a2, -a2 * y2],
+        ]
+    )
+
+
+def _ideal_b(rig: StereoRig, q: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.hstack([rig.cam1.ideal_offsets(q[:, :2]), rig.cam2.ideal_offsets(q[:, 2:])])
+
+
+def _triangulate_best(
+    rig: StereoRig, q: NDArray[np.float64], sigma: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    A = best_design_matrix(rig)
+    normal_inv = np.linalg.inv(A.T @ A)
+    theta = _ideal_b(rig, q) @ (normal_inv @ A.T).T  # (N, 3) = (p, q, u)
+    p, qq, u = theta[:, 0], theta[:, 1], theta[:, 2]
+    front = u > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_u = np.where(front, 1.0 / u, np.nan)
+    xyz = np.column_stack([p * inv_u, qq * inv_u, inv_u])
+    # Jacobian of (p/u, q/u, 1/u) with respect to (p, q, u).
+    n = len(q)
+    G = np.zeros((n, 3, 3))
+    G[:, 0, 0] = inv_u
+    G[:, 1, 1] = inv_u
+    G[:, 0, 2] = -xyz[:, 0] * inv_u
+    G[:, 1, 2] = -xyz[:, 1] * inv_u
+    G[:, 2, 2] = -inv_u * inv_u
+    cov = (sigma * sigma) * np.einsum("nij,jk,nlk->nil", G, normal_inv, G)
+    return xyz, cov
+
+
+def _triangulate_thesis(
+    rig: StereoRig, q: NDArray[np.float64], sigma: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    off = thesis_offsets(rig, q)
+    d = rig.baseline_mm
+    f1 = rig.cam1.f_over_k_px * MIRROR_CONSTANT_K  # f = K·(f/K), pixel focal length of camera 1
+    xyz = thesis_xyz(off, d, f1)
+    # The thesis puts the origin midway between the mirrors; keep that for an asymmetric rig too.
+    xyz[:, 1] += 0.5 * (rig.cam1.y_mm + rig.cam2.y_mm)
+    jac = thesis_jacobian(off, d, f1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        cov = (sigma * sigma) * np.einsum("nab,ncb->nac", jac, jac)
+    bad = ~np.isfinite(cov).all(axis=(1, 2))
+    cov[bad] = np.nan
+    return xyz, cov
+
+
+def triangulate(
+    rig: StereoRig,
+    pixels: ArrayLike,
+    method: TriangulationMethod = "best",
+    pixel_sigma_px: float = 0.3,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Matched image positions (N, 4) r1 c1 r2 c2 px → xyz (N, 3) mm and cov (N, 3, 3) mm².
+
+    ``pixel_sigma_px`` is the standard deviation of each image coordinate (isotropic, independent)
+    used for the covariance. See the module docstring for the two methods; the thesis method
+    implements eqs. 6.3–6.9 and takes its covariance from the error model (eqs. 6.10–6.11),
+    NaN where that is undefined. An empty input gives arrays of shape (0, 3) and (0, 3, 3).
+    """
+    q = _as_pixels4(pixels)
+    sigma = _check_sigma(pixel_sigma_px)
+    if len(q) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
+    if method == "best":
+        return _triangulate_best(rig, q, sigma)
+    if method == "thesis":
+        return _triangulate_thesis(rig, q, sigma)
+    raise ValueError(f"unknown triangulation method {method!r} (known: thesis, best)")
+
+
+def ray_residual_px(rig: StereoRig, pixels: ArrayLike) -> NDArray[np.float64]:
+    """How far (N,) px a matched pair is from rays that meet: ‖b − A·θ̂‖ of the ``best`` fit.
+
+    Zero for a noise-free true pair; for an ideal rig it equals |r1 − r2|/√2. Under isotropic
+    pixel noise σ it is distributed as σ·|N(0, 1)|, so e.g. 3σ is a sensible rejection bound.
+    """
+    q = _as_pixels4(pixels)
+    if len(q) == 0:
+        return np.zeros(0)
+    A = best_design_matrix(rig)
+    b = _ideal_b(rig, q)
+    hat = A @ np.linalg.pinv(A)
+    res = b - b @ hat.T
+    return np.asarray(np.linalg.norm(res, axis=1), dtype=np.float64)

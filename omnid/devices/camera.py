@@ -1,0 +1,439 @@
+"""Stereo camera sources, chosen by URL (docs/interfaces.md "Cameras").
+
+Every source is a :class:`StereoFrameSource`: ``await read_pair() -> (img1, img2, t_s)`` and
+``await flush()``. The base class owns the open/closed state and the deadline (a source that
+delivers nothing within ``timeout_s`` raises :class:`~omnid.errors.DeviceTimeout`); backends
+implement only ``_read_pair_blocking`` or ``_read_pair_async``.
+
+=================================  ==========================================================
+URL                                backend
+=================================  ==========================================================
+``v4l2:///dev/video0,/dev/video2``  two V4L2 devices through ``cv2.VideoCapture`` (grabbed in a
+                                   worker thread; resolution, exposure, buffer size settings)
+``replay:///dir``                  image pairs ``<stem>_1.<ext>``/``<stem>_2.<ext>`` (sorted by
+                                   stem), or two videos ``cam1.*``/``cam2.*``; ``?loop=1`` loops
+``sim+unix:///path.sock``          the simulator frame server (wire format in interfaces.md)
+``sim:``                           an in-process callable (:func:`open_camera` ``frame_fn=``)
+=================================  ==========================================================
+
+Timestamps: ``t_s`` is ``time.monotonic()`` when both frames had been grabbed (for ``sim+unix``
+the simulator's own ``t_s``, which is the clock the simulated daemon runs on).
+
+``flush()`` makes sure the next pair was captured after the call — the thesis takes the mask
+(laser off) and base (laser on) captures in sequence (4.1.4), so a base frame must not be a
+frame the driver had queued before the laser was switched on. For V4L2 the driver's queue
+(``buffer_size`` frames) is drained by grabbing and discarding that many frames per camera; the
+simulator and the in-process source render on request, so they hold no stale frames.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnid.config import require
+from omnid.errors import ConfigError, DeviceClosed, DeviceError, DeviceTimeout, ProtocolError
+
+log = logging.getLogger(__name__)
+
+Image = NDArray[np.uint8]
+FramePair = tuple[Image, Image, float]
+
+SIM_HEADER = struct.Struct("<4sdII")
+SIM_MAGIC = b"OMNF"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """Camera source settings; ``url`` picks the backend (see the module docstring)."""
+
+    url: str = "v4l2:///dev/video0,/dev/video2"
+    timeout_s: float = 1.0
+    width_px: int = 640
+    height_px: int = 480
+    fps: float = 30.0
+    exposure: float | None = None  # device units (cv2.CAP_PROP_EXPOSURE); None = auto
+    buffer_size: int = 1  # frames the driver may queue (cv2.CAP_PROP_BUFFERSIZE)
+    grayscale: bool = True
+
+    def __post_init__(self) -> None:
+        require(self.timeout_s > 0.0, "timeout_s", "must be > 0")
+        require(self.width_px > 0 and self.height_px > 0, "width_px", "must be > 0")
+        require(self.fps > 0.0, "fps", "must be > 0")
+        require(1 <= self.buffer_size <= 32, "buffer_size", "must be in 1..32")
+
+
+def _gray(img: Any, grayscale: bool) -> Image:
+    arr = np.asarray(img)
+    if grayscale and arr.ndim == 3:
+        import cv2
+
+        arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY)
+    return np.ascontiguousarray(arr, dtype=np.uint8)
+
+
+class StereoFrameSource:
+    """Base class: open/closed state, deadlines; backends implement the raw read."""
+
+    name = "camera"
+
+    def __init__(self, settings: CameraSettings | None = None) -> None:
+        self.settings = settings or CameraSettings()
+        self._closed = False
+        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._pending: asyncio.Future[Any] | None = None
+        self.frames_read = 0
+        self.timeouts = 0
+
+    # --- backends override one of these ---------------------------------------------------
+    def _read_pair_blocking(self) -> FramePair:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    async def _read_pair_async(self) -> FramePair:
+        """Default: run the blocking read in this source's own worker thread."""
+        if self._executor is None:
+            self._executor = concurrent.futures.ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix=f"omnid-{self.name}"
+            )
+        loop = asyncio.get_running_loop()
+        if self._pending is None or self._pending.done():
+            self._pending = loop.run_in_executor(self._executor, self._read_pair_blocking)
+        # a grab that overran its deadline keeps running; the next call waits on it rather than
+        # queueing another blocking call behind it
+        pending = self._pending
+        result = await asyncio.shield(pending)
+        self._pending = None
+        return result
+
+    def _flush_blocking(self) -> None:
+        """Discard frames captured before now (default: nothing is queued)."""
+
+    def _close(self) -> None:
+        """Release the backend's resources."""
+
+    # --- public API -----------------------------------------------------------------------
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    async def read_pair(self) -> FramePair:
+        """Next stereo pair ``(img1, img2, t_s)``; raises DeviceTimeout after ``timeout_s``."""
+        if self._closed:
+            raise DeviceClosed(f"{self.name}: camera source is closed")
+        try:
+            img1, img2, t_s = await asyncio.wait_for(
+                self._read_pair_async(), self.settings.timeout_s
+            )
+        except TimeoutError:
+            self.timeouts += 1
+            raise DeviceTimeout(
+                f"{self.name}: no frames within {self.settings.timeout_s:g} s"
+            ) from None
+        self.frames_read += 1
+        return img1, img2, t_s
+
+    async def flush(self) -> None:
+        """Make the next :meth:`read_pair` return frames captured after this call."""
+        if self._closed:
+            raise DeviceClosed(f"{self.name}: camera source is closed")
+        if type(self)._flush_blocking is StereoFrameSource._flush_blocking:
+            return
+        if self._pending is not None and not self._pending.done():
+            # an overrunning grab still holds the device; wait for it (bounded)
+            try:
+                await asyncio.wait_for(asyncio.shield(self._pending), self.settings.timeout_s)
+            except TimeoutError:
+                self.timeouts += 1
+                raise DeviceTimeout(
+                    f"{self.name}: flush waited {self.settings.timeout_s:g} s"
+                ) from None
+            self._pending = None
+        loop = asyncio.get_running_loop()
+        if self._executor is None:
+            self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1)
+        fut = loop.run_in_executor(self._executor, self._flush_blocking)
+        try:
+            await asyncio.wait_for(asyncio.shield(fut), self.settings.timeout_s * 2)
+        except TimeoutError:
+            self.timeouts += 1
+            self._pending = fut
+            raise DeviceTimeout(
+                f"{self.name}: flush took over {self.settings.timeout_s * 2:g} s"
+            ) from None
+
+    async def close(self) -> None:
+        """Release devices and the worker thread; further reads raise DeviceClosed."""
+        if self._closed:
+            return
+        self._closed = True
+        self._close()
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+
+    async def __aenter__(self) -> StereoFrameSource:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+
+class VideoCaptureSource(StereoFrameSource):
+    """Two ``cv2.VideoCapture`` streams, grabbed then retrieved together in a worker thread.
+
+    ``api`` is ``cv2.CAP_V4L2`` for V4L2 devices; with ``cv2.CAP_ANY`` the same code reads two
+    video files (used by the tests and by ``replay:`` with videos).
+    """
+
+    name = "v4l2"
+
+    def __init__(
+        self,
+        specs: tuple[str, str],
+        settings: CameraSettings | None = None,
+        api: int | None = None,
+        loop: bool = False,
+        device: bool = True,
+    ) -> None:
+        super().__init__(settings)
+        import cv2
+
+        self._cv2 = cv2
+        self.specs = specs
+        self._loop = loop
+        self._device = device
+        self._api = cv2.CAP_V4L2 if api is None else api
+        self._caps = [self._open(spec) for spec in specs]
+
+    def _open(self, spec: str) -> Any:
+        cv2 = self._cv2
+        target: str | int = int(spec) if spec.isdigit() else spec
+        cap = cv2.VideoCapture(target, self._api)
+        if not cap.isOpened():
+            cap.release()
+            raise DeviceError(f"{self.name}: cannot open camera {spec!r}")
+        if self._device:
+            s = self.settings
+            wanted = [
+                (cv2.CAP_PROP_FRAME_WIDTH, s.width_px, "width_px"),
+                (cv2.CAP_PROP_FRAME_HEIGHT, s.height_px, "height_px"),
+                (cv2.CAP_PROP_FPS, s.fps, "fps"),
+                (cv2.CAP_PROP_BUFFERSIZE, s.buffer_size, "buffer_size"),
+            ]
+            if s.exposure is not None:
+                wanted += [
+                    (cv2.CAP_PROP_AUTO_EXPOSURE, 1, "exposure (manual mode)"),
+                    (cv2.CAP_PROP_EXPOSURE, s.exposure, "exposure"),
+                ]
+            for prop, value, key in wanted:
+                if not cap.set(prop, float(value)):
+                    log.warning("%s: camera %s refused %s=%s", self.name, spec, key, value)
+        return cap
+
+    def _grab(self, i: int) -> None:
+        cap = self._caps[i]
+        if cap.grab():
+            return
+        if self._loop and not self._device:
+            cap.set(self._cv2.CAP_PROP_POS_FRAMES, 0)
+            if cap.grab():
+                return
+        raise DeviceError(f"{self.name}: camera {self.specs[i]!r} delivered no frame")
+
+    def _read_pair_blocking(self) -> FramePair:
+        # grab both first, then decode, so the two exposures are as close in time as possible
+        self._grab(0)
+        self._grab(1)
+        t_s = time.monotonic()
+        imgs = []
+        for i, cap in enumerate(self._caps):
+            ok, img = cap.retrieve()
+            if not ok or img is None:
+                raise DeviceError(f"{self.name}: camera {self.specs[i]!r} frame not decodable")
+            imgs.append(_gray(img, self.settings.grayscale))
+        return imgs[0], imgs[1], t_s
+
+    def _flush_blocking(self) -> None:
+        if not self._device:
+            return  # files hold no frames captured "before now"
+        for _ in range(self.settings.buffer_size):
+            for i in range(2):
+                self._caps[i].grab()
+
+    def _close(self) -> None:
+        for cap in self._caps:
+            cap.release()
+
+
+class ReplaySource(StereoFrameSource):
+    """Image pairs from a directory: ``<stem>_1.<ext>`` and ``<stem>_2.<ext>``, sorted by stem."""
+
+    name = "replay"
+
+    def __init__(
+        self,
+        pairs: list[tuple[Path, Path]],
+        settings: CameraSettings | None = None,
+        loop: bool = False,
+    ) -> None:
+        super().__init__(settings)
+        if not pairs:
+            raise ConfigError("camera.url: replay directory holds no image pairs")
+        self.pairs = pairs
+        self._loop = loop
+        self._index = 0
+
+    @staticmethod
+    def find_pairs(directory: Path) -> list[tuple[Path, Path]]:
+        """Pairs ``(stem_1.ext, stem_2.ext)`` in ``directory``, sorted by stem."""
+        ones = {}
+        for p in sorted(directory.iterdir()):
+            if p.suffix.lower() in IMAGE_SUFFIXES and p.stem.endswith("_1"):
+                ones[p.stem[:-2]] = p
+        pairs = []
+        for stem, p1 in sorted(ones.items()):
+            p2 = p1.with_name(f"{stem}_2{p1.suffix}")
+            if p2.exists():
+                pairs.append((p1, p2))
+        return pairs
+
+    def _read_pair_blocking(self) -> FramePair:
+        import cv2
+
+        if self._index >= len(self.pairs):
+            if not self._loop:
+                raise DeviceClosed(f"{self.name}: end of replay ({len(self.pairs)} pairs)")
+            self._index = 0
+        p1, p2 = self.pairs[self._index]
+        self._index += 1
+        flag = cv2.IMREAD_GRAYSCALE if self.settings.grayscale else cv2.IMREAD_COLOR
+        imgs = []
+        for p in (p1, p2):
+            img = cv2.imread(str(p), flag)
+            if img is None:
+                raise DeviceError(f"{self.name}: cannot read image {p}")
+            imgs.append(np.ascontiguousarray(img, dtype=np.uint8))
+        return imgs[0], imgs[1], time.monotonic()
+
+
+class SimUnixSource(StereoFrameSource):
+    """Frames from the simulator's frame server over a Unix socket (interfaces.md wire format)."""
+
+    name = "sim+unix"
+
+    def __init__(self, path: str, settings: CameraSettings | None = None) -> None:
+        super().__init__(settings)
+        self.path = path
+        self._reader: asyncio.StreamReader | None = None
+        self._writer: asyncio.StreamWriter | None = None
+
+    async def _connect(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        if self._reader is None or self._writer is None:
+            try:
+                self._reader, self._writer = await asyncio.open_unix_connection(self.path)
+            except OSError as exc:
+                raise DeviceError(f"{self.name}: cannot connect to {self.path}: {exc}") from exc
+        return self._reader, self._writer
+
+    def _drop(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+        self._reader = self._writer = None
+
+    async def _read_pair_async(self) -> FramePair:
+        reader, writer = await self._connect()
+        try:
+            writer.write(b"G")
+            await writer.drain()
+            header = await reader.readexactly(SIM_HEADER.size)
+            magic, t_s, rows, cols = SIM_HEADER.unpack(header)
+            if magic != SIM_MAGIC or rows * cols > 64 * 1024 * 1024:
+                raise ProtocolError(f"{self.name}: bad frame header from {self.path}")
+            body = await reader.readexactly(2 * rows * cols)
+        except (OSError, asyncio.IncompleteReadError) as exc:
+            self._drop()
+            raise DeviceError(f"{self.name}: frame server {self.path} failed: {exc}") from exc
+        except BaseException:
+            self._drop()  # a timeout mid-frame leaves the stream unaligned: reconnect next time
+            raise
+        frames = np.frombuffer(body, dtype=np.uint8).reshape(2, rows, cols)
+        return frames[0].copy(), frames[1].copy(), float(t_s)
+
+    def _close(self) -> None:
+        self._drop()
+
+
+class CallableSource(StereoFrameSource):
+    """In-process source: ``frame_fn() -> (img1, img2[, t_s])`` (the simulator, or a test)."""
+
+    name = "sim"
+
+    def __init__(
+        self, frame_fn: Callable[[], tuple[Any, ...]], settings: CameraSettings | None = None
+    ) -> None:
+        super().__init__(settings)
+        self.frame_fn = frame_fn
+
+    async def _read_pair_async(self) -> FramePair:
+        out = self.frame_fn()
+        if asyncio.iscoroutine(out):
+            out = await out
+        img1, img2 = out[0], out[1]
+        t_s = float(out[2]) if len(out) > 2 else time.monotonic()
+        return _gray(img1, self.settings.grayscale), _gray(img2, self.settings.grayscale), t_s
+
+
+def open_camera(
+    settings: CameraSettings | str,
+    frame_fn: Callable[[], tuple[Any, ...]] | None = None,
+) -> StereoFrameSource:
+    """Open the stereo source named by ``settings.url`` (or a bare URL string)."""
+    if isinstance(settings, str):
+        settings = CameraSettings(url=settings)
+    parts = urlsplit(settings.url)
+    query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    loop = query.get("loop", "0").lower() in ("1", "true", "yes")
+    scheme = parts.scheme
+    if scheme == "v4l2":
+        specs = [s for s in parts.path.split(",") if s]
+        if len(specs) != 2:
+            raise ConfigError(f"camera.url: v4l2 needs two devices, got {settings.url!r}")
+        return VideoCaptureSource((specs[0], specs[1]), settings)
+    if scheme == "replay":
+        directory = Path(parts.path)
+        if not directory.is_dir():
+            raise ConfigError(f"camera.url: replay directory {directory} does not exist")
+        vids = [sorted(directory.glob(f"cam{i}.*")) for i in (1, 2)]
+        if vids[0] and vids[1]:
+            import cv2
+
+            return VideoCaptureSource(
+                (str(vids[0][0]), str(vids[1][0])),
+                settings,
+                api=cv2.CAP_ANY,
+                loop=loop,
+                device=False,
+            )
+        return ReplaySource(ReplaySource.find_pairs(directory), settings, loop=loop)
+    if scheme == "sim+unix":
+        return SimUnixSource(parts.path, settings)
+    if scheme == "sim":
+        if frame_fn is None:
+            raise ConfigError("camera.url: 'sim:' needs an in-process frame function")
+        return CallableSource(frame_fn, settings)
+    raise ConfigError(
+        f"camera.url: unknown scheme {scheme!r} in {settings.url!r} "
+        "(known: v4l2, replay, sim+unix, sim)"
+    )

@@ -1,0 +1,431 @@
+"""The control-unit link: wheel commands out, clock counters and faults back (SPEC §4).
+
+:class:`ControlUnitLink` is the asyncio driver. Its own task sends the latest
+:class:`WheelCommand` every ``command_period_s`` (a stop command until the daemon sets one),
+matches each reply to its command by sequence number, unwraps the int32 wheel clock counters into
+Python ints, counts errors (timeouts, CRC, sequence), and reconnects with back-off when the port
+disappears (USB adapter unplugged). Wire format: ``docs/protocol.md`` via
+:mod:`omnid.devices.cu_codec`.
+
+Fail safe: the link is *unhealthy* when the port is gone or ``max_missed_replies`` replies in a row
+were missing or rejected. The moment that happens :attr:`ControlUnitLink.status` returns ``None``,
+``health.healthy`` is False and a warning is logged, so the daemon stops the chair; the unit's own
+watchdog stops the motors if our commands stop reaching it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from omnid.config import require
+from omnid.devices import cu_codec as codec
+from omnid.devices.transport import Rs485Options, Transport, open_transport
+from omnid.errors import DeviceError, ProtocolError
+
+__all__ = [
+    "ControlUnitHealth",
+    "ControlUnitLink",
+    "ControlUnitSettings",
+    "ControlUnitStatus",
+    "WheelCommand",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class WheelCommand:
+    """What the daemon wants the unit to do. Duties are signed, in [-1, 1] (negative = backward).
+
+    ``enable=False`` brakes: the unit switches both motors off whatever the duties say.
+    """
+
+    left_duty: float = 0.0
+    right_duty: float = 0.0
+    laser_on: bool = False
+    enable: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("left_duty", "right_duty"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ProtocolError(f"WheelCommand.{name}: expected a number, got {v!r}")
+            if not (math.isfinite(v) and -1.0 <= v <= 1.0):
+                raise ProtocolError(f"WheelCommand.{name}: {v!r} is not a duty in [-1, 1]")
+
+    @classmethod
+    def stop(cls, laser_on: bool = False) -> WheelCommand:
+        """Both motors off (brake), laser as given."""
+        return cls(0.0, 0.0, laser_on=laser_on, enable=False)
+
+    def to_frame(self, seq: int, watchdog_ms: int = 0) -> codec.CommandFrame:
+        """The protocol frame for this command (``docs/protocol.md``, command payload)."""
+        lmag, lrev = codec.duty_to_wire(self.left_duty)
+        rmag, rrev = codec.duty_to_wire(self.right_duty)
+        flags = (
+            (codec.FLAG_LEFT_REVERSE if lrev else 0)
+            | (codec.FLAG_RIGHT_REVERSE if rrev else 0)
+            | (codec.FLAG_LASER_ON if self.laser_on else 0)
+            | (codec.FLAG_ENABLE if self.enable else 0)
+        )
+        return codec.CommandFrame(seq, lmag, rmag, flags, watchdog_ms)
+
+
+@dataclass(frozen=True)
+class ControlUnitStatus:
+    """One reply of the unit, with the wheel clock counters unwrapped into unbounded ints.
+
+    ``left_clocks`` / ``right_clocks``: clocks since the link first heard the unit (31.4 mm of
+    wheel travel each, + forward). ``laser_on``: the relay as actually switched. ``faults``: the
+    protocol's fault bits (``cu_codec.FAULT_*``). ``timestamp_s``: monotonic receive time, s.
+    """
+
+    seq: int
+    left_clocks: int
+    right_clocks: int
+    laser_on: bool
+    faults: int
+    timestamp_s: float
+    left_applied_duty: float = 0.0
+    right_applied_duty: float = 0.0
+    drive_enabled: bool = False
+
+    @property
+    def fault_names(self) -> tuple[str, ...]:
+        return codec.fault_names(self.faults)
+
+
+@dataclass(frozen=True)
+class ControlUnitSettings:
+    """Settings of the control-unit link (section ``control_unit`` of the daemon's YAML).
+
+    ``port``: a device path (``/dev/serial/by-id/...``) or ``loop://``. ``unit_watchdog_s`` is sent
+    in every command (the unit stops the motors after that long without one).
+    """
+
+    port: str = "/dev/ttyUSB0"
+    baudrate: int = 115200
+    command_period_s: float = 0.02
+    reply_timeout_s: float = 0.015
+    unit_watchdog_s: float = 0.25
+    max_missed_replies: int = 2
+    rs485: Rs485Options | None = None
+    reconnect_initial_s: float = 0.05
+    reconnect_max_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        require(bool(self.port), "port", "must name a device path or loop://")
+        require(
+            self.baudrate in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600),
+            "baudrate",
+            f"{self.baudrate} is not a standard rate (9600 … 921600)",
+        )
+        require(0.005 <= self.command_period_s <= 0.2, "command_period_s", "must be 0.005–0.2 s")
+        require(
+            0.002 <= self.reply_timeout_s < self.command_period_s,
+            "reply_timeout_s",
+            "must be ≥ 0.002 s and shorter than command_period_s",
+        )
+        require(
+            0.02 <= self.unit_watchdog_s <= 2.0, "unit_watchdog_s", "must be 0.02–2 s (protocol)"
+        )
+        require(
+            self.unit_watchdog_s >= 2 * self.command_period_s,
+            "unit_watchdog_s",
+            "must be at least two command periods, or the unit trips between commands",
+        )
+        require(1 <= self.max_missed_replies <= 3, "max_missed_replies", "must be 1–3")
+        require(self.reconnect_initial_s > 0, "reconnect_initial_s", "must be > 0")
+        require(
+            self.reconnect_max_s >= self.reconnect_initial_s,
+            "reconnect_max_s",
+            "must be ≥ reconnect_initial_s",
+        )
+
+
+@dataclass
+class ControlUnitHealth:
+    """How the link is doing; a snapshot is returned by :attr:`ControlUnitLink.health`."""
+
+    connected: bool = False
+    healthy: bool = False
+    last_reply_age_s: float | None = None
+    commands_sent: int = 0
+    replies_ok: int = 0
+    timeouts: int = 0
+    crc_errors: int = 0
+    malformed: int = 0
+    seq_errors: int = 0
+    port_errors: int = 0
+    reconnects: int = 0
+    consecutive_missed: int = 0
+    unit_faults: int = 0
+    unit_rx_errors: int = 0
+    last_error: str = ""
+    fault_history: list[str] = field(default_factory=list)
+
+    def copy(self) -> ControlUnitHealth:
+        return ControlUnitHealth(**{**self.__dict__, "fault_history": list(self.fault_history)})
+
+
+class ControlUnitLink:
+    """Asyncio driver of the control unit (see module docstring).
+
+    ``on_status`` (optional) is called in the event loop with each new status.
+    ``transport_factory`` (optional, for in-process emulators) replaces :func:`open_transport`.
+    """
+
+    def __init__(
+        self,
+        settings: ControlUnitSettings,
+        on_status: Callable[[ControlUnitStatus], None] | None = None,
+        transport_factory: Callable[[], Transport] | None = None,
+    ) -> None:
+        self.settings = settings
+        self._on_status = on_status
+        self._factory = transport_factory or (
+            lambda: open_transport(settings.port, baudrate=settings.baudrate, rs485=settings.rs485)
+        )
+        self._command = WheelCommand.stop()
+        self._transport: Transport | None = None
+        self._parser = codec.FrameParser(accept=(codec.TYPE_REPLY,))
+        self._task: asyncio.Task[None] | None = None
+        self._stopping = False
+        self._seq = 0
+        self._health = ControlUnitHealth()
+        self._status: ControlUnitStatus | None = None
+        self._last_raw: tuple[int, int] | None = None
+        self._unwrapped = (0, 0)
+        self._last_reply_t: float | None = None
+        self._watchdog_ms = round(settings.unit_watchdog_s * 1000)
+        self._wake = asyncio.Event()
+
+    # -- public API ----------------------------------------------------------------------
+    async def start(self) -> None:
+        """Start the link task (returns at once; it connects in the background)."""
+        if self._task is not None:
+            return
+        self._stopping = False
+        self._task = asyncio.create_task(self._run(), name="control-unit-link")
+
+    async def stop(self) -> None:
+        """Send a final stop command (best effort), then close the port."""
+        self._stopping = True
+        self._command = WheelCommand.stop()
+        if self._task is not None and self._task.done():
+            if not self._task.cancelled() and self._task.exception() is not None:
+                log.error("control unit link task had failed: %r", self._task.exception())
+        elif self._task is not None:
+            self._wake.set()
+            try:
+                async with asyncio.timeout(1.0):
+                    await self._task
+            except TimeoutError:
+                self._task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await self._task
+        self._task = None
+        if self._transport is not None and self._transport.is_open:
+            t = self._transport
+            with contextlib.suppress(DeviceError, TimeoutError):
+                async with asyncio.timeout(0.1):
+                    await t.write(codec.encode_command(self._next_frame()))
+            t.close()
+        self._transport = None
+        self._set_unhealthy("link stopped", warn=False)
+        self._health.connected = False
+
+    def set_command(self, cmd: WheelCommand) -> None:
+        """Make ``cmd`` the command sent from the next period on."""
+        if not isinstance(cmd, WheelCommand):
+            raise TypeError(f"set_command expects a WheelCommand, got {type(cmd).__name__}")
+        self._command = cmd
+
+    @property
+    def command(self) -> WheelCommand:
+        return self._command
+
+    @property
+    def status(self) -> ControlUnitStatus | None:
+        """The latest status while the link is healthy; ``None`` when it is not (stop the chair)."""
+        return self._status if self._health.healthy else None
+
+    @property
+    def last_status(self) -> ControlUnitStatus | None:
+        """The latest status ever received (also while unhealthy), for diagnostics and odometry."""
+        return self._status
+
+    @property
+    def health(self) -> ControlUnitHealth:
+        """A snapshot of connection state, last reply age and error counters."""
+        h = self._health.copy()
+        if self._last_reply_t is not None:
+            h.last_reply_age_s = time.monotonic() - self._last_reply_t
+        return h
+
+    # -- internals -----------------------------------------------------------------------
+    def _next_frame(self) -> codec.CommandFrame:
+        self._seq = (self._seq + 1) & 0xFF
+        return self._command.to_frame(self._seq, self._watchdog_ms)
+
+    def _set_unhealthy(self, reason: str, warn: bool = True) -> None:
+        h = self._health
+        h.last_error = reason
+        if h.healthy:
+            h.healthy = False
+            h.fault_history.append(reason)
+            del h.fault_history[:-20]
+            if warn:
+                log.warning("control unit link unhealthy: %s", reason)
+
+    def _missed(self, reason: str) -> None:
+        h = self._health
+        h.consecutive_missed += 1
+        h.last_error = reason
+        if h.healthy and h.consecutive_missed >= self.settings.max_missed_replies:
+            self._set_unhealthy(f"{h.consecutive_missed} replies missed in a row ({reason})")
+
+    def _accept(self, rep: codec.ReplyFrame, now: float) -> None:
+        h = self._health
+        raw = (rep.left_clocks, rep.right_clocks)
+        if self._last_raw is None:
+            self._unwrapped = raw
+        elif rep.faults & codec.FAULT_RESET:
+            log.warning("control unit reset: clock counters restarted, odometry rebased")
+        else:
+            self._unwrapped = (
+                self._unwrapped[0] + codec.unwrap_int32(self._last_raw[0], raw[0]),
+                self._unwrapped[1] + codec.unwrap_int32(self._last_raw[1], raw[1]),
+            )
+        self._last_raw = raw
+        if rep.faults & ~codec.FAULT_RESET and rep.faults != h.unit_faults:
+            log.warning("control unit faults: %s", ", ".join(codec.fault_names(rep.faults)))
+        h.unit_faults = rep.faults
+        h.unit_rx_errors = rep.rx_errors
+        h.replies_ok += 1
+        h.consecutive_missed = 0
+        self._last_reply_t = now
+        self._status = ControlUnitStatus(
+            seq=rep.seq,
+            left_clocks=self._unwrapped[0],
+            right_clocks=self._unwrapped[1],
+            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
+            faults=rep.faults,
+            timestamp_s=now,
+            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
+            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
+            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
+        )
+        if not h.healthy:
+            h.healthy = True
+            log.info("control unit link healthy (seq %d)", rep.seq)
+        if self._on_status is not None:
+            try:
+                self._on_status(self._status)
+            except Exception:
+                log.exception("control unit on_status callback failed")
+
+    def _sync_parser_counters(self) -> None:
+        h, p = self._health, self._parser
+        h.crc_errors, h.malformed = p.crc_errors, p.malformed
+
+    async def _connect(self) -> bool:
+        try:
+            self._transport = self._factory()
+        except DeviceError as exc:
+            self._health.last_error = str(exc)
+            return False
+        self._parser.reset()
+        self._health.connected = True
+        log.info("control unit port %s open", self._transport.name)
+        return True
+
+    def _drop_transport(self, reason: str) -> None:
+        if self._transport is not None:
+            self._transport.close()
+        self._transport = None
+        self._health.connected = False
+        self._health.port_errors += 1
+        self._set_unhealthy(reason)
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        s = self.settings
+        backoff = s.reconnect_initial_s
+        ever_connected = False
+        next_t = loop.time()
+        while not self._stopping:
+            if self._transport is None:
+                if await self._connect():
+                    if ever_connected:
+                        self._health.reconnects += 1
+                    ever_connected = True
+                    backoff = s.reconnect_initial_s
+                    next_t = loop.time()
+                else:
+                    await self._sleep(backoff)
+                    backoff = min(backoff * 2, s.reconnect_max_s)
+                    continue
+            try:
+                await self._exchange(loop)
+            except DeviceError as exc:
+                self._drop_transport(f"port error: {exc}")
+                continue
+            except Exception as exc:  # a bug must not leave the unit without a stop decision
+                log.exception("control unit link: unexpected error")
+                self._drop_transport(f"internal error: {exc!r}")
+                continue
+            next_t += s.command_period_s
+            delay = next_t - loop.time()
+            if delay < -s.command_period_s:  # overran (loop blocked): restart the grid
+                next_t = loop.time()
+                delay = 0.0
+            await self._sleep(max(delay, 0.0))
+
+    async def _sleep(self, delay_s: float) -> None:
+        self._wake.clear()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(delay_s):
+                await self._wake.wait()
+
+    async def _exchange(self, loop: asyncio.AbstractEventLoop) -> None:
+        """One command → reply exchange; bookkeeping of every outcome."""
+        t = self._transport
+        assert t is not None
+        h = self._health
+        frame = self._next_frame()
+        seq = frame.seq
+        await t.write(codec.encode_command(frame))
+        h.commands_sent += 1
+        deadline = loop.time() + self.settings.reply_timeout_s
+        crc_before = self._parser.crc_errors + self._parser.malformed
+        got = False
+        while not got:
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                break
+            data = await t.read_some(256, remaining)
+            if not data:
+                break
+            for rep in self._parser.feed(data):
+                if rep.seq == seq and isinstance(rep, codec.ReplyFrame):
+                    self._accept(rep, time.monotonic())
+                    got = True
+                else:
+                    h.seq_errors += 1
+        self._sync_parser_counters()
+        if not got:
+            if self._parser.crc_errors + self._parser.malformed > crc_before:
+                self._missed(f"reply to seq {seq} rejected (CRC/format)")
+            else:
+                h.timeouts += 1
+                self._missed(
+                    f"no reply to seq {seq} within {self.settings.reply_timeout_s * 1000:.0f} ms"
+                )
+            self._parser.reset()

@@ -1,0 +1,209 @@
+"""Camera sources: video files through cv2.VideoCapture, image-pair replay, the simulator socket."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from omnid.devices.camera import (
+    SIM_HEADER,
+    CameraSettings,
+    VideoCaptureSource,
+    open_camera,
+)
+from omnid.errors import ConfigError, DeviceClosed, DeviceError, DeviceTimeout
+
+
+def _frame(k: int, cam: int, shape=(48, 64)) -> np.ndarray:
+    """A gray frame whose mean brightness encodes (frame index, camera): 20*k + 100*cam."""
+    return np.full(shape, 20 * k + 100 * (cam - 1) + 10, np.uint8)
+
+
+def _write_video(path: Path, cam: int, n: int) -> None:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    assert writer.isOpened()
+    for k in range(n):
+        writer.write(cv2.cvtColor(_frame(k, cam), cv2.COLOR_GRAY2BGR))
+    writer.release()
+
+
+def test_video_files_read_like_devices(tmp_path):
+    for cam in (1, 2):
+        _write_video(tmp_path / f"cam{cam}.avi", cam, 3)
+
+    async def go():
+        src = open_camera(CameraSettings(url=f"replay://{tmp_path}?loop=1", timeout_s=2.0))
+        assert isinstance(src, VideoCaptureSource)
+        seen = []
+        t_prev = -1.0
+        for _ in range(5):  # 3 frames, then loops back
+            img1, img2, t_s = await src.read_pair()
+            assert img1.shape == (48, 64) and img1.dtype == np.uint8
+            assert t_s >= t_prev and abs(t_s - time.monotonic()) < 1.0
+            t_prev = t_s
+            seen.append((round((img1.mean() - 10) / 20), round((img2.mean() - 110) / 20)))
+        await src.flush()
+        await src.close()
+        with pytest.raises(DeviceClosed):
+            await src.read_pair()
+        return seen
+
+    # MJPG is lossy: brightness within ±3 levels still decodes the index exactly
+    assert asyncio.run(go()) == [(0, 0), (1, 1), (2, 2), (0, 0), (1, 1)]
+
+
+def test_video_without_loop_ends_with_device_error(tmp_path):
+    for cam in (1, 2):
+        _write_video(tmp_path / f"cam{cam}.avi", cam, 1)
+
+    async def go():
+        src = open_camera(f"replay://{tmp_path}")
+        await src.read_pair()
+        with pytest.raises(DeviceError, match="no frame"):
+            await src.read_pair()
+        await src.close()
+
+    asyncio.run(go())
+
+
+def test_image_pair_replay(tmp_path):
+    for k in range(2):
+        for cam in (1, 2):
+            cv2.imwrite(str(tmp_path / f"cap{k:03d}_{cam}.png"), _frame(k, cam))
+    cv2.imwrite(str(tmp_path / "orphan_1.png"), _frame(9, 1))  # no partner: ignored
+
+    async def go():
+        src = open_camera(f"replay://{tmp_path}")
+        a = await src.read_pair()
+        b = await src.read_pair()
+        with pytest.raises(DeviceClosed, match="end of replay"):
+            await src.read_pair()
+        return a, b
+
+    a, b = asyncio.run(go())
+    assert np.array_equal(a[0], _frame(0, 1)) and np.array_equal(a[1], _frame(0, 2))
+    assert np.array_equal(b[0], _frame(1, 1)) and np.array_equal(b[1], _frame(1, 2))
+
+
+def test_missing_v4l2_device_and_bad_urls(tmp_path):
+    with pytest.raises(DeviceError, match="/dev/video-nonexistent"):
+        open_camera("v4l2:///dev/video-nonexistent,/dev/video-nonexistent2")
+    with pytest.raises(ConfigError, match="two devices"):
+        open_camera("v4l2:///dev/video0")
+    with pytest.raises(ConfigError, match="unknown scheme"):
+        open_camera("rtsp://camera")
+    with pytest.raises(ConfigError, match="does not exist"):
+        open_camera(f"replay://{tmp_path}/none")
+    with pytest.raises(ConfigError, match="timeout_s"):
+        CameraSettings(timeout_s=0)
+
+
+async def _frame_server(path: str, rows: int, cols: int, hang_after: int | None = None):
+    served = 0
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        nonlocal served
+        try:
+            while (await reader.read(1)) == b"G":
+                if hang_after is not None and served >= hang_after:
+                    await asyncio.sleep(10)
+                t_s = 100.0 + served
+                img1 = np.full((rows, cols), served, np.uint8)
+                img2 = np.arange(rows * cols, dtype=np.uint32).astype(np.uint8).reshape(rows, cols)
+                writer.write(SIM_HEADER.pack(b"OMNF", t_s, rows, cols))
+                writer.write(img1.tobytes() + img2.tobytes())
+                await writer.drain()
+                served += 1
+        finally:
+            writer.close()
+
+    return await asyncio.start_unix_server(handle, path)
+
+
+def test_sim_unix_wire_format_and_timeout(tmp_path):
+    sock = str(tmp_path / "frames.sock")
+
+    async def go():
+        server = await _frame_server(sock, 30, 40, hang_after=2)
+        src = open_camera(CameraSettings(url=f"sim+unix://{sock}", timeout_s=0.2))
+        img1, img2, t_s = await src.read_pair()
+        assert t_s == 100.0 and img1.shape == (30, 40) and (img1 == 0).all()
+        assert img2[1, 0] == 40 % 256
+        await src.flush()
+        _, _, t_s = await src.read_pair()
+        assert t_s == 101.0
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout, match="no frames within 0.2 s"):
+            await src.read_pair()
+        assert 0.15 < time.monotonic() - t0 < 1.0
+        await src.close()
+        server.close()
+
+    asyncio.run(go())
+
+
+def test_sim_unix_server_gone_is_device_error(tmp_path):
+    async def go():
+        src = open_camera(f"sim+unix://{tmp_path}/absent.sock")
+        with pytest.raises(DeviceError, match="cannot connect"):
+            await src.read_pair()
+
+    asyncio.run(go())
+
+
+def test_in_process_sim_source_and_timeout():
+    calls = []
+
+    def frames():
+        calls.append(1)
+        return np.zeros((4, 5, 3), np.uint8), np.ones((4, 5), np.uint8), 7.5
+
+    async def slow():
+        await asyncio.sleep(5)
+        return frames()
+
+    async def go():
+        src = open_camera(CameraSettings(url="sim:", timeout_s=0.1), frame_fn=frames)
+        img1, _img2, t_s = await src.read_pair()
+        assert img1.shape == (4, 5) and t_s == 7.5  # BGR converted to gray
+        stuck = open_camera(CameraSettings(url="sim:", timeout_s=0.1), frame_fn=slow)
+        with pytest.raises(DeviceTimeout):
+            await stuck.read_pair()
+        with pytest.raises(ConfigError, match="frame function"):
+            open_camera("sim:")
+
+    asyncio.run(go())
+    assert len(calls) == 1
+
+
+def test_sim_header_layout():
+    assert SIM_HEADER.size == struct.calcsize("<4sdII") == 20
+
+
+def test_device_mode_flush_drains_the_driver_queue(tmp_path, caplog):
+    """The v4l2 code path on files: settings are applied (files refuse them: logged), and flush
+    discards ``buffer_size`` queued frames per camera so the next pair is fresh."""
+    for cam in (1, 2):
+        _write_video(tmp_path / f"cam{cam}.avi", cam, 6)
+
+    async def go():
+        src = VideoCaptureSource(
+            (str(tmp_path / "cam1.avi"), str(tmp_path / "cam2.avi")),
+            CameraSettings(buffer_size=2, exposure=10.0),
+            api=cv2.CAP_ANY,
+        )
+        img1, _, _ = await src.read_pair()
+        await src.flush()
+        after, _, _ = await src.read_pair()
+        await src.close()
+        return round((img1.mean() - 10) / 20), round((after.mean() - 10) / 20)
+
+    with caplog.at_level("WARNING"):
+        assert asyncio.run(go()) == (0, 3)
+    assert "refused" in caplog.text

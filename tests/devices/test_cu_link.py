@@ -1,0 +1,272 @@
+"""ControlUnitLink against ControlUnitEmulator over real ptys: round trips, faults, recovery.
+
+Detection is counted in command periods (commands sent between the fault and the unhealthy
+flag), not wall time, so the assertions hold on a loaded CI machine.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import pytest
+
+from omnid.config import from_mapping
+from omnid.devices import cu_codec as codec
+from omnid.devices.control_unit import (
+    ControlUnitLink,
+    ControlUnitSettings,
+    WheelCommand,
+)
+from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
+from omnid.devices.transport import pipe_pair
+from omnid.errors import ConfigError, ProtocolError
+
+PERIOD_S = 0.01
+
+
+def settings(port: str, **kw) -> ControlUnitSettings:
+    base = dict(
+        port=port,
+        command_period_s=PERIOD_S,
+        reply_timeout_s=0.008,
+        unit_watchdog_s=0.1,
+        reconnect_initial_s=0.01,
+        reconnect_max_s=0.05,
+    )
+    base.update(kw)
+    return ControlUnitSettings(**base)
+
+
+async def wait_for(pred: Callable[[], bool], timeout_s: float = 2.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.002)
+
+
+def with_link(
+    emu: ControlUnitEmulator, path: str, body: Callable[[ControlUnitLink], Awaitable[None]], **kw
+):
+    async def main():
+        link = ControlUnitLink(settings(path, **kw))
+        await link.start()
+        try:
+            await wait_for(lambda: link.health.healthy)
+            await body(link)
+        finally:
+            await link.stop()
+
+    asyncio.run(main())
+
+
+@pytest.fixture
+def emu(tmp_path: Path):
+    e = ControlUnitEmulator(
+        MotorPlant(full_duty_rpm=30.0, time_constant_s=0.02), laser_delay_s=0.02
+    )
+    e.open_pty(tmp_path / "ttyCU")
+    yield e
+    e.close()
+
+
+def test_wheel_command_refuses_nan_and_out_of_range():
+    for bad in (float("nan"), 1.01, -1.5, float("inf")):
+        with pytest.raises(ProtocolError):
+            WheelCommand(bad, 0.0)
+    with pytest.raises(ProtocolError):
+        WheelCommand(0.0, True)  # type: ignore[arg-type]
+    assert WheelCommand(-1.0, 1.0).to_frame(3).flags & codec.FLAG_LEFT_REVERSE
+
+
+def test_settings_are_validated_with_named_keys():
+    with pytest.raises(ConfigError, match="reply_timeout_s"):
+        ControlUnitSettings(reply_timeout_s=0.05, command_period_s=0.02)
+    with pytest.raises(ConfigError, match="control_unit.baudrate"):
+        from_mapping(ControlUnitSettings, {"baudrate": 1234}, "control_unit")
+    s = from_mapping(ControlUnitSettings, {"port": "/dev/x", "rs485": {"delay_before_tx_s": 0.001}})
+    assert s.rs485 is not None and s.rs485.delay_before_tx_s == 0.001
+
+
+def test_round_trip_drives_wheels_counts_clocks_and_switches_laser(emu: ControlUnitEmulator):
+    async def body(link: ControlUnitLink):
+        st0 = link.status
+        assert st0 is not None and not st0.laser_on
+        link.set_command(WheelCommand(1.0, -0.5, laser_on=True, enable=True))
+        await asyncio.sleep(0.4)
+        st = link.status
+        assert st is not None
+        # 30 rpm = 7.5 clocks/s at full duty; 0.4 s → ~3 clocks left, ~-1.5 right
+        assert st.left_clocks - st0.left_clocks >= 2
+        assert st.right_clocks - st0.right_clocks <= -1
+        assert st.laser_on and emu.laser_on
+        assert st.left_applied_duty == 1.0 and st.right_applied_duty == -0.5
+        assert emu.applied_duty == (1.0, -0.5)
+        h = link.health
+        assert h.timeouts == 0 and h.crc_errors == 0 and h.seq_errors == 0
+        assert h.replies_ok >= 20
+        link.set_command(WheelCommand.stop())
+        await wait_for(lambda: emu.applied_duty == (0.0, 0.0) and not emu.laser_on)
+
+    with_link(emu, emu.path or "", body)
+
+
+def test_clock_counters_unwrap_across_int32_wrap(tmp_path: Path):
+    emu = ControlUnitEmulator(
+        MotorPlant(full_duty_rpm=600.0, time_constant_s=0.01), clock_offset=2**31 - 20
+    )
+    path = emu.open_pty(tmp_path / "ttyW")
+
+    async def body(link: ControlUnitLink):
+        st0 = link.status
+        assert st0 is not None and st0.left_clocks == 2**31 - 20
+        link.set_command(WheelCommand(1.0, 1.0, enable=True))  # 150 clocks/s
+        await wait_for(lambda: (link.status.left_clocks if link.status else 0) > 2**31 + 20)
+        st = link.status
+        assert st is not None
+        assert (
+            st.left_clocks - st0.left_clocks == emu.clocks[0]
+            or abs(st.left_clocks - st0.left_clocks - emu.clocks[0]) <= 3
+        )  # emulator kept moving since the reply
+
+    try:
+        with_link(emu, path, body)
+    finally:
+        emu.close()
+
+
+def _periods_until_unhealthy(link: ControlUnitLink, sent_at_fault: int) -> int:
+    return link.health.commands_sent - sent_at_fault
+
+
+@pytest.mark.parametrize("fault", ["stall", "corrupt", "drop"])
+def test_silent_or_corrupt_unit_detected_within_3_periods_and_recovered(
+    emu: ControlUnitEmulator, fault: str, caplog
+):
+    caplog.set_level(logging.WARNING, "omnid.devices.control_unit")
+
+    async def body(link: ControlUnitLink):
+        link.set_command(WheelCommand(0.3, 0.3, enable=True))
+        await asyncio.sleep(0.05)
+        sent = link.health.commands_sent
+        {"stall": emu.stall, "corrupt": emu.corrupt_replies, "drop": emu.drop_replies}[fault]()
+        await wait_for(lambda: not link.health.healthy)
+        assert link.status is None  # visible at once: the daemon stops on None
+        assert _periods_until_unhealthy(link, sent) <= 3
+        h = link.health
+        if fault == "corrupt":
+            assert h.crc_errors >= 2
+        else:
+            assert h.timeouts >= 2
+        assert any("unhealthy" in r.message for r in caplog.records)
+        emu.recover()
+        await wait_for(lambda: link.health.healthy)
+        assert link.status is not None
+        if fault == "corrupt":  # bad replies are rejected by the master, not counted at the unit
+            assert link.status.faults & codec.FAULT_RX_ERROR == 0
+
+    with_link(emu, emu.path or "", body)
+
+
+def test_unplug_replug_detected_within_3_periods_and_reconnected(emu: ControlUnitEmulator):
+    async def body(link: ControlUnitLink):
+        before = link.status
+        assert before is not None
+        sent = link.health.commands_sent
+        emu.die()
+        await wait_for(lambda: not link.health.healthy)
+        assert _periods_until_unhealthy(link, sent) <= 3
+        assert link.status is None
+        await asyncio.sleep(0.1)  # stays down while unplugged: reconnect attempts back off
+        h = link.health
+        assert not h.connected and not h.healthy and h.port_errors >= 1
+        emu.recover()
+        await wait_for(lambda: link.health.healthy)
+        h = link.health
+        assert h.connected and h.reconnects == 1
+        after = link.status
+        assert after is not None and after.left_clocks >= before.left_clocks
+
+    with_link(emu, emu.path or "", body)
+
+
+def test_unit_watchdog_stops_motors_and_laser_when_commands_stop(emu: ControlUnitEmulator):
+    async def body(link: ControlUnitLink):
+        link.set_command(WheelCommand(0.8, 0.8, laser_on=True, enable=True))
+        await wait_for(lambda: emu.laser_on)
+        assert emu.applied_duty == (0.8, 0.8)
+        task = link._task
+        assert task is not None
+        task.cancel()  # the master dies without a word: no stop command is sent
+        await asyncio.sleep(0.1 + 0.05)  # unit_watchdog_s = 0.1
+        assert emu.applied_duty == (0.0, 0.0)
+        assert emu.watchdog_trips == 1
+        await asyncio.sleep(0.03)
+        assert not emu.laser_on
+        c0 = emu.clocks
+        await asyncio.sleep(0.2)  # the wheels coast to a halt (tau 0.02 s) and stay there
+        assert emu.clocks == c0
+
+    with_link(emu, emu.path or "", body)
+
+
+def test_watchdog_fault_reported_in_next_reply():
+    # in-process pipe + injected clock: the unit's watchdog without wall-clock waiting
+    now = [0.0]
+    emu = ControlUnitEmulator(clock=lambda: now[0])
+    cmd = WheelCommand(0.5, 0.5, enable=True).to_frame(1, watchdog_ms=250)
+    assert emu.handle_bytes(codec.encode_command(cmd))  # first reply carries RESET
+    now[0] = 0.2
+    rep = codec.decode_frame(emu.handle_bytes(codec.encode_command(cmd)))
+    assert isinstance(rep, codec.ReplyFrame) and rep.faults == 0 and rep.left_applied_pm == 500
+    now[0] = 0.46
+    assert emu.applied_duty == (0.0, 0.0)
+    rep = codec.decode_frame(emu.handle_bytes(codec.encode_command(cmd)))
+    assert isinstance(rep, codec.ReplyFrame)
+    assert rep.faults & codec.FAULT_WATCHDOG and rep.left_applied_pm == 500  # obeyed again
+
+
+def test_corrupted_command_is_ignored_and_counted_by_the_unit():
+    now = [0.0]
+    emu = ControlUnitEmulator(clock=lambda: now[0])
+    good = codec.encode_command(WheelCommand(0.5, 0.5, enable=True).to_frame(9))
+    bad = bytearray(good)
+    bad[5] ^= 0x01
+    assert emu.handle_bytes(bytes(bad)) == b""
+    assert emu.applied_duty == (0.0, 0.0) and emu.rx_errors == 1
+    rep = codec.decode_frame(emu.handle_bytes(good))
+    assert isinstance(rep, codec.ReplyFrame)
+    assert rep.seq == 9 and rep.rx_errors == 1 and rep.faults & codec.FAULT_RX_ERROR
+
+
+def test_link_over_in_process_pipe():
+    async def main():
+        a, b = pipe_pair()
+        emu = ControlUnitEmulator()
+        emu.serve_pipe(b)
+        link = ControlUnitLink(settings("pipe"), transport_factory=lambda: a)
+        await link.start()
+        await wait_for(lambda: link.health.healthy)
+        link.set_command(WheelCommand(0.0, 0.0, laser_on=True, enable=True))
+        await wait_for(lambda: bool(link.status and link.status.laser_on))
+        await link.stop()
+        emu.close()
+
+    asyncio.run(main())
+
+
+def test_missing_port_retries_with_backoff_and_stays_unhealthy(tmp_path: Path):
+    async def main():
+        link = ControlUnitLink(settings(str(tmp_path / "nothing")))
+        await link.start()
+        await asyncio.sleep(0.15)
+        h = link.health
+        assert not h.connected and not h.healthy and link.status is None
+        assert "nothing" in h.last_error
+        await link.stop()
+
+    asyncio.run(main())

@@ -1,0 +1,136 @@
+"""Joystick: dead zone and mapping, discrete commands, the evdev parser, a pty as event device."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+import tty
+
+import pytest
+
+from omnid.config import from_mapping
+from omnid.devices.joystick import (
+    ABS_X,
+    ABS_Y,
+    EV_ABS,
+    EV_KEY,
+    EV_SYN,
+    INPUT_EVENT,
+    SYN_REPORT,
+    AxisMapper,
+    EvdevParser,
+    JoystickLink,
+    JoystickReading,
+    JoystickSettings,
+    discrete_command,
+    pack_event,
+    shape_axis,
+)
+from omnid.errors import ConfigError, DeviceError
+
+
+def test_shape_axis_dead_zone_and_proportional():
+    assert shape_axis(0.1, 0.15) == 0.0
+    assert shape_axis(-0.15, 0.15) == 0.0
+    assert shape_axis(0.15 + 0.85 / 2, 0.15) == pytest.approx(0.5)
+    assert shape_axis(-1.0, 0.15) == -1.0
+    assert shape_axis(1.3, 0.15) == 1.0
+    # continuous at the edge of the dead zone: no jump in speed
+    assert shape_axis(0.1501, 0.15) < 1e-3
+
+
+def test_mapper_orientation_and_range():
+    m = AxisMapper(JoystickSettings(axis_min=0, axis_max=255, dead_zone=0.1))
+    m.raw[ABS_Y] = 0  # pushed away
+    m.raw[ABS_X] = 255  # pushed right
+    r = m.reading(1.0)
+    assert r.forward == 1.0 and r.turn == -1.0
+    m.raw[ABS_Y] = 127.5 + 3  # noise around centre
+    m.raw[ABS_X] = 127.5
+    r = m.reading(2.0)
+    assert r.forward == 0.0 and r.turn == 0.0 and r.timestamp_s == 2.0
+
+
+def test_discrete_commands_follow_thesis_arrows():
+    assert discrete_command(JoystickReading(0.9, 0.1, 0), 0.5) == "forward"
+    assert discrete_command(JoystickReading(-0.9, 0.1, 0), 0.5) == "stop"
+    assert discrete_command(JoystickReading(0.2, 0.8, 0), 0.5) == "left"
+    assert discrete_command(JoystickReading(0.2, -0.8, 0), 0.5) == "right"
+    assert discrete_command(JoystickReading(0.3, -0.3, 0), 0.5) is None
+
+
+def test_reading_and_settings_validation():
+    with pytest.raises(ValueError, match="forward"):
+        JoystickReading(float("nan"), 0.0, 0.0)
+    with pytest.raises(ValueError, match="turn"):
+        JoystickReading(0.0, 1.5, 0.0)
+    with pytest.raises(ConfigError, match="joystick.dead_zone"):
+        from_mapping(JoystickSettings, {"dead_zone": 1.2}, "joystick")
+    with pytest.raises(ConfigError, match="joystick.url"):
+        JoystickLink(JoystickSettings(url="usb://x"))
+
+
+def test_evdev_parser_on_byte_strings():
+    data = pack_event(EV_ABS, ABS_X, -300, 12.25) + pack_event(EV_SYN, SYN_REPORT, 0, 12.5)
+    assert INPUT_EVENT.size == 24
+    p = EvdevParser()
+    events = p.feed(data[:10]) + p.feed(data[10:30]) + p.feed(data[30:])
+    assert [(e.type, e.code, e.value) for e in events] == [(EV_ABS, ABS_X, -300), (EV_SYN, 0, 0)]
+    assert events[0].time_s == pytest.approx(12.25)
+
+
+def _raw_pty() -> tuple[int, str]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    os.close(slave)  # the link opens it by path, like /dev/input/eventN
+    return master, path
+
+
+async def _until(cond, timeout_s=2.0):
+    t_end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < t_end, "condition not reached"
+        await asyncio.sleep(0.005)
+
+
+def test_evdev_link_over_a_pty_and_unplug():
+    master, path = _raw_pty()
+    s = JoystickSettings(
+        url=f"evdev://{path}", axis_min=-100, axis_max=100, dead_zone=0.1, stale_after_s=0.1
+    )
+
+    async def go():
+        link = JoystickLink(s)
+        await link.start()
+        assert link.latest is not None and link.latest.forward == 0.0  # centred at start
+        os.write(master, pack_event(EV_ABS, ABS_Y, -100) + pack_event(EV_KEY, 288, 1))
+        await asyncio.sleep(0.05)
+        assert link.latest.forward == 0.0  # not committed before SYN_REPORT
+        os.write(master, pack_event(EV_ABS, ABS_X, 55) + pack_event(EV_SYN, SYN_REPORT, 0))
+        await _until(lambda: link.latest is not None and link.latest.forward == 1.0)
+        assert link.latest.turn == pytest.approx(-0.5)
+        # a held stick sends nothing, yet stays valid and fresh while the device is healthy
+        await asyncio.sleep(0.3)
+        r = link.latest
+        assert r is not None and r.forward == 1.0
+        assert time.monotonic() - r.timestamp_s <= s.stale_after_s
+        os.close(master)  # unplugged: reads fail with EIO
+        t0 = time.monotonic()
+        await _until(lambda: link.latest is None)
+        lost_after = time.monotonic() - t0
+        await link.stop()
+        return lost_after, link.errors
+
+    lost_after, errors = asyncio.run(go())
+    assert lost_after < 0.1 and errors == 1
+
+
+def test_missing_event_device_names_it():
+    async def go():
+        link = JoystickLink(JoystickSettings(url="evdev:///dev/input/event-none"))
+        with pytest.raises(DeviceError, match="event-none"):
+            await link.start()
+
+    asyncio.run(go())
