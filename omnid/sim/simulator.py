@@ -43,6 +43,7 @@ from omnid.config import require
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
+from omnid.errors import OmnidError
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
 from omnid.sim.rider import HeadScript, KeyScript
@@ -323,6 +324,27 @@ class OpenLoopDriver:
         pass
 
 
+# -- rider ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SimTiltReading:
+    """A head-tilt reading (the fields of ``omnid.devices.tilt.TiltReading``), deg and s."""
+
+    roll_deg: float
+    pitch_deg: float
+    timestamp_s: float
+
+
+def _tilt_reading_type() -> Any:
+    """The device layer's ``TiltReading`` when present, else :class:`SimTiltReading`."""
+    try:
+        from omnid.devices.tilt import TiltReading  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        return SimTiltReading
+    return TiltReading
+
+
 # -- perception ---------------------------------------------------------------------------------
 
 
@@ -393,6 +415,15 @@ class Simulator:
         self.now_s = 0.0
         self._rng = np.random.default_rng(self.settings.seed)
         self._calib: Any = None
+        if self.settings.perception == "pipeline":
+            try:
+                import omnid.core.calibration
+                import omnid.core.pipeline  # noqa: F401
+            except ImportError as exc:
+                raise OmnidError(
+                    f"perception 'pipeline' needs the vision pipeline, which is not in this "
+                    f"build ({exc}); use perception 'truth'"
+                ) from exc
         box_rects = [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
         drop_rects = [
             (d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs
@@ -480,11 +511,7 @@ class Simulator:
         k_ctrl, k_tilt = s.ticks(s.control_period_s), s.ticks(s.tilt_period_s)
         k_perc, k_rec = s.ticks(s.perception_period_s), s.ticks(s.record_period_s)
 
-        tilt_type = None
-        if self.rider is not None:
-            from omnid.devices.tilt import TiltReading  # type: ignore[import-not-found,attr-defined,unused-ignore]
-
-            tilt_type = TiltReading
+        tilt_type = _tilt_reading_type() if self.rider is not None else None
 
         refusal_log = _RefusalLog(lambda: self.now_s)
         daemon_log = logging.getLogger("omnid.daemon")

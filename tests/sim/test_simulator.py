@@ -183,3 +183,27 @@ def test_simulate_command_rejects_a_bad_drive_in_one_line(capsys):
     assert main(["simulate", "--drive", "0:2:1", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--drive '0:2:1'" in err[0]
+
+
+def test_rider_head_script_reaches_the_controller_on_the_virtual_clock():
+    from omnid.sim.rider import command_of, head_script
+
+    script = head_script([("forward", 1.0), ("left", 0.5)], tilt_deg=20.0, move_s=0.2)
+
+    class _TiltProbe(OpenLoopDriver):
+        def __init__(self) -> None:
+            super().__init__([(0.0, 0.0, 0.0)])
+            self.readings: list = []
+
+        def on_tilt(self, reading):
+            self.readings.append(reading)
+
+    probe = _TiltProbe()
+    Simulator(empty_room(), probe, rider=script, settings=SimSettings(perception="off")).run(2.0)
+    times = [r.timestamp_s for r in probe.readings]
+    assert len(times) == 201 and times[1] - times[0] == pytest.approx(0.01)
+    by_time = {round(r.timestamp_s, 2): r for r in probe.readings}
+    assert command_of(by_time[0.1].roll_deg, by_time[0.1].pitch_deg, 12.0) == "neutral"
+    assert by_time[0.1].roll_deg == pytest.approx(-10.0)  # half-way through the 0.2 s move
+    assert command_of(by_time[0.8].roll_deg, by_time[0.8].pitch_deg, 12.0) == "forward"
+    assert command_of(by_time[1.6].roll_deg, by_time[1.6].pitch_deg, 12.0) == "left"
