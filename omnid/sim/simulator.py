@@ -501,6 +501,23 @@ class Simulator:
 
     # -- the loop -----------------------------------------------------------------------------
 
+    def _note_decision(self, now: float, out: list[tuple[float, str]], last: str) -> str:
+        """Record a refusal when the daemon core's last cycle stopped a motion the rider asked
+        for (``ControlCore.last_report``). A refusal repeated cycle after cycle (or flickering
+        with a slow-down) is recorded once, again only when its text changes or after 5 s."""
+        report = getattr(self.controller, "last_report", None)
+        if report is None:
+            return last
+        demand, decision = report.demand, report.decision
+        asked = not demand.stop and (demand.forward != 0.0 or demand.turn != 0.0)
+        if not asked or decision is None or not decision.stopped:
+            return last
+        reasons = ", ".join(getattr(r, "value", str(r)) for r in report.reasons) or "stopped"
+        text = f"refused {demand.reason.removeprefix('tilt_').removeprefix('key_')}: {reasons}"
+        if text != last or not out or now - out[-1][0] > 5.0:
+            out.append((now, text))
+        return text
+
     def run(self, duration_s: float) -> SimResult:
         """Simulate ``duration_s`` virtual seconds; returns the trajectory, contacts, refusals,
         what perception saw and timing figures."""
@@ -524,6 +541,8 @@ class Simulator:
         t_perc: list[float] = []
         t_ctrl: list[float] = []
         min_clear = math.inf
+        refusals: list[tuple[float, str]] = []
+        last_refusal = ""
         wall0 = time.perf_counter()
         last_progress = -math.inf
         try:
@@ -555,6 +574,7 @@ class Simulator:
                     w0 = time.perf_counter()
                     command = self.controller.step(now)
                     t_ctrl.append(time.perf_counter() - w0)
+                    last_refusal = self._note_decision(now, refusals, last_refusal)
                     status = self.control_unit.exchange(command, now)
                     if status is not None:
                         self.controller.on_status(status)
@@ -581,6 +601,8 @@ class Simulator:
                         self.progress(now, self)
                 found = self.chair.contacts(self.course.world)
                 new = [c for c in found if all(c != old for _, old in contacts)]
+                if new:
+                    min_clear = 0.0
                 for c in new:
                     log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
                     contacts.append((now, c))
@@ -592,8 +614,7 @@ class Simulator:
         finally:
             daemon_log.removeHandler(refusal_log)
         wall = time.perf_counter() - wall0
-        refusals = list(refusal_log.records)
-        refusals += [(float(t), str(r)) for t, r in getattr(self.controller, "refusals", ())]
+        refusals += refusal_log.records
         timings = {
             "wall_s": wall,
             "virtual_s": self.now_s,
