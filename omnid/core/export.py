@@ -156,7 +156,10 @@ def render_topdown(
         rgb = _class_rgb(cloud.classes)
         for (c, r), col in zip(pts, rgb, strict=True):
             bgr = (int(col[2]), int(col[1]), int(col[0]))
-            cv2.circle(img, (int(c), int(r)), max(1, cell_px // 2), bgr, -1)
+            radius = max(1, cell_px // 2)
+            # A dark rim keeps a dot visible over a cell of its own colour (drop-off on drop-off).
+            cv2.circle(img, (int(c), int(r)), radius + 1, (30, 30, 30), -1)
+            cv2.circle(img, (int(c), int(r)), radius, bgr, -1)
     # Scale bar: 1 m, bottom left.
     h_img = img.shape[0]
     bar = math.floor(1000.0 * px_per_mm)

@@ -10,9 +10,11 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   has swept — FREE. A triangle with a drop-off corner (and no obstacle corner) spans the place
   where the floor goes missing: dots beyond an edge fall lower and land farther, so between the
   last floor dot and the first lowered one lies floor that was never seen — it is marked DROPOFF,
-  never free. Obstacle dots, and triangles of neighbouring obstacle dots (a box top), mark
-  OBSTACLE (dots optionally inflated). Cells this cloud does not cover
-  keep what they had.
+  never free. Stronger still, a lowered dot's laser ray crossed floor level somewhere nearer
+  without meeting floor: the cells along the ray from that crossing to the dot are DROPOFF,
+  however deep the drop (7.2.2 extended to missing floor). Obstacle dots, and triangles of
+  neighbouring obstacle dots (a box top), mark OBSTACLE (dots optionally inflated). Cells this
+  cloud does not cover keep what they had.
 - ``move`` applies the robot's motion. The map is stored in an *anchor* frame (the robot frame
   at some earlier pose) together with the current robot pose in it; a move only updates that
   pose, and the grid is resampled (``cv2.warpAffine``, nearest neighbour) only when the chair has
@@ -49,6 +51,9 @@ class FreeSpaceSettings:
     obstacle_max_edge_mm   longest edge of a triangle of obstacle dots filled as OBSTACLE
                            (a box top between its dots; gaps this narrow are impassable anyway)
     obstacle_inflation_mm  obstacle and drop-off dots also block cells this far around them
+    clear_after_contradictions  a remembered OBSTACLE/DROPOFF cell that only the filling between
+                           floor dots calls free (no dot in the cell) is cleared after this many
+                           captures in a row say so; a floor dot in the cell clears it at once
     forget_after_s         remembered cells not seen again for this long become UNKNOWN
                            (0: never forget); needs ``now_s`` in :meth:`FreeSpaceMap.update`
     reanchor_distance_mm   travel from the anchor pose before the stored grid is resampled
@@ -60,6 +65,7 @@ class FreeSpaceSettings:
     obstacle_max_edge_mm: float = 200.0
     obstacle_inflation_mm: float = 0.0
     forget_after_s: float = 0.0
+    clear_after_contradictions: int = 3
     reanchor_distance_mm: float = 1000.0
 
     def __post_init__(self) -> None:
@@ -74,6 +80,7 @@ class FreeSpaceSettings:
             value = getattr(self, key)
             require(math.isfinite(value) and value >= 0, key, "must be a finite number ≥ 0")
         require(self.free_max_edge_mm > 0, "free_max_edge_mm", "must be positive")
+        require(self.clear_after_contradictions >= 1, "clear_after_contradictions", "must be ≥ 1")
 
 
 def _affine(
@@ -121,6 +128,7 @@ class FreeSpaceMap:
         self._anchor_settings = GridSettings(g.resolution_mm, -half, half, -half, half)
         self._anchor = OccupancyGrid(self._anchor_settings)
         self._seen_s = np.full(self._anchor.states.shape, -np.inf)
+        self._contradictions: NDArray[np.uint8] = np.zeros(self._anchor.states.shape, np.uint8)
         self._pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  # robot in the anchor frame
         self._now_s = 0.0
         self._grid: OccupancyGrid | None = None
@@ -173,6 +181,17 @@ class FreeSpaceMap:
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=-1e300,
         )
+        self._contradictions = np.asarray(
+            cv2.warpAffine(
+                self._contradictions,
+                M,
+                (ny, nx),
+                flags=flags,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            ),
+            dtype=np.uint8,
+        )
         self._pose = (0.0, 0.0, 0.0)
 
     # -- observations -------------------------------------------------------------------------
@@ -195,8 +214,33 @@ class FreeSpaceMap:
             xy = _to_frame(self._pose, rig_to_robot(cloud.xyz, rig_x_offset_mm))
             ok = np.all(np.isfinite(xy), axis=1)
             xy, cls = xy[ok], cloud.classes[ok]
-            obs = self._observation(xy, cls, cv2)
+            # A ray that ended below the floor passed floor level at P·H/Z without meeting any
+            # floor there: the floor is missing all along its path from that crossing to the dot.
+            xyz = cloud.xyz[ok]
+            H = cloud.floor_depth_mm
+            low = (cls == PointClass.DROPOFF) & (xyz[:, 2] > H)
+            crossing = xyz[low] * (H / xyz[low, 2])[:, None]
+            xy0 = _to_frame(self._pose, rig_to_robot(crossing, rig_x_offset_mm))
+            segments = np.stack([xy0, xy[low]], axis=1)
+            # The crossings also join the triangulation as drop-off corners, so the strip between
+            # the last floor dots and the first crossings reads DROPOFF too.
+            xy = np.vstack([xy, xy0])
+            cls = np.concatenate([cls, np.full(len(xy0), PointClass.DROPOFF, np.uint8)])
+            obs, direct_free = self._observation(xy, cls, cv2, segments)
             seen = obs != _UNSEEN
+            # Free area filled in between floor dots is an interpolation: it must not erase a
+            # remembered obstacle or drop-off (a thin post can fall between the dots of one
+            # capture). Only a floor dot landing in the cell itself clears it.
+            held = (self._anchor.states == CellState.OBSTACLE) | (
+                self._anchor.states == CellState.DROPOFF
+            )
+            # It does clear it once ``clear_after_contradictions`` captures in a row have filled
+            # it as free, so a phantom or removed obstacle between dot columns cannot stay forever.
+            contradicted = held & (obs == CellState.FREE) & ~direct_free
+            self._contradictions[contradicted] += 1
+            self._contradictions[~contradicted] = 0
+            keep = contradicted & (self._contradictions < st.clear_after_contradictions)
+            seen &= ~keep
             self._anchor.states[seen] = obs[seen].astype(np.int8)
             self._seen_s[seen] = self._now_s
         if st.forget_after_s > 0 and now_s is not None:
@@ -213,8 +257,19 @@ class FreeSpaceMap:
             ]
         )
 
-    def _observation(self, xy: NDArray[np.float64], cls: NDArray[np.uint8], cv2) -> NDArray:
-        """The cells one cloud speaks about: uint8 CellState values, _UNSEEN elsewhere."""
+    def _observation(
+        self,
+        xy: NDArray[np.float64],
+        cls: NDArray[np.uint8],
+        cv2,
+        missing_floor: NDArray[np.float64],
+    ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+        """The cells one cloud speaks about: uint8 CellState values, _UNSEEN elsewhere; and the
+        mask of cells FREE because a floor dot lies in them (not by filling between dots).
+
+        ``missing_floor`` (M, 2, 2): anchor-frame segments along which the floor is known to be
+        missing (a lowered dot's ray from its floor-level crossing to the dot).
+        """
         st = self.settings
         shape = self._anchor.states.shape
         obs = np.full(shape, _UNSEEN, dtype=np.uint8)
@@ -257,6 +312,17 @@ class FreeSpaceMap:
         # A floor dot's own cell is free unless this cloud already called it a drop-off.
         here = obs[cells[fl, 1], cells[fl, 0]]
         obs[cells[fl, 1], cells[fl, 0]] = np.where(here == CellState.DROPOFF, here, CellState.FREE)
+        direct_free = np.zeros(shape, dtype=bool)
+        direct_free[cells[fl, 1], cells[fl, 0]] = True
+        if len(missing_floor):
+            res = self._anchor_settings.resolution_mm
+            seg = missing_floor[:, 1] - missing_floor[:, 0]
+            k = max(2, math.ceil(float(np.linalg.norm(seg, axis=1).max()) / (0.5 * res)) + 1)
+            t = np.linspace(0.0, 1.0, k)
+            along = missing_floor[:, None, 0, :] + t[None, :, None] * seg[:, None, :]
+            c = np.floor(self._pixels(along.reshape(-1, 2)) + 0.5).astype(np.intp)
+            ok = (c[:, 0] >= 0) & (c[:, 0] < shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < shape[0])
+            obs[c[ok, 1], c[ok, 0]] = int(CellState.DROPOFF)
         radius = math.ceil(st.obstacle_inflation_mm / self._anchor_settings.resolution_mm)
         for mask_pts, state in (
             (valid & dropoff, CellState.DROPOFF),
@@ -272,7 +338,7 @@ class FreeSpaceMap:
                 )
                 layer = cv2.dilate(layer, kernel)
             obs[layer > 0] = int(state)
-        return obs
+        return obs, direct_free & (obs == CellState.FREE)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -354,6 +420,7 @@ class FreeSpaceMap:
         """Forget everything (all cells UNKNOWN)."""
         self._anchor.states[:] = CellState.UNKNOWN
         self._seen_s[:] = -np.inf
+        self._contradictions[:] = 0
         self._grid = None
 
     def render_png(self, path: str | Path, cloud: PointCloud | None = None) -> None:
@@ -380,7 +447,7 @@ def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
     lo = pts.min(axis=0) - 10.0
     hi = pts.max(axis=0) + 10.0
     sub = cv2.Subdiv2D((float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])))
-    sub.insert([(float(p[0]), float(p[1])) for p in pts])
+    sub.insert(np.ascontiguousarray(pts))  # type: ignore[call-overload]  # (N, 2) array is fine
     tri = np.asarray(sub.getTriangleList(), dtype=np.float32).reshape(-1, 3, 2)
     if len(tri) == 0:
         return np.zeros((0, 3), dtype=np.intp)

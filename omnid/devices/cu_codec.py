@@ -268,7 +268,8 @@ class FrameParser:
     a well-formed frame of another type is counted in ``unexpected`` and skipped.
 
     Counters (cumulative): ``frames`` accepted, ``crc_errors``, ``malformed`` (bad type/length or
-    field out of range), ``unexpected``, ``discarded_bytes`` (bytes skipped while searching).
+    field out of range), ``unexpected``, ``truncated`` (an incomplete frame overtaken by a complete
+    valid one), ``discarded_bytes`` (bytes skipped while searching).
     """
 
     def __init__(
@@ -281,6 +282,7 @@ class FrameParser:
         self.crc_errors = 0
         self.malformed = 0
         self.unexpected = 0
+        self.truncated = 0
         self.discarded_bytes = 0
 
     @property
@@ -296,6 +298,23 @@ class FrameParser:
     def _skip(self, n: int) -> None:
         del self._buf[:n]
         self.discarded_bytes += n
+
+    def _complete_frame_after(self, start: int) -> int:
+        """Index of the first complete, valid frame starting at or after ``start``; -1 if none."""
+        buf = self._buf
+        j = buf.find(START, start)
+        while j >= 0:
+            length = _PAYLOAD_LEN.get(buf[j + 1]) if j + 2 < len(buf) else None
+            if length is not None and buf[j + 2] == length:
+                total = HEADER_LEN + length + CRC_LEN
+                if j + total <= len(buf):
+                    try:
+                        decode_frame(buf[j : j + total])
+                        return j
+                    except ProtocolError:
+                        pass
+            j = buf.find(START, j + 1)
+        return -1
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[CommandFrame | ReplyFrame]:
         buf = self._buf
@@ -318,7 +337,15 @@ class FrameParser:
                 continue
             total = HEADER_LEN + length + CRC_LEN
             if len(buf) < total:
-                break
+                # Incomplete — unless a complete valid frame already starts later in the buffer:
+                # then this candidate was a truncated frame or a false start, and waiting for
+                # more bytes would hold the good frame back.
+                j = self._complete_frame_after(1)
+                if j < 0:
+                    break
+                self.truncated += 1
+                self._skip(j)
+                continue
             body = bytes(buf[1 : HEADER_LEN + length])
             if crc16(body) != (buf[total - 2] << 8 | buf[total - 1]):
                 self.crc_errors += 1

@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from omnid.config import require
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
+from omnid.core.triangulate import TriangulationMethod
 from omnid.core.types import PointClass, PointCloud
 
 #: Boxes reach this far below the floor so that a box standing in a pit rests on its bottom
@@ -325,58 +326,36 @@ def as_world(boxes: Sequence[Box] = (), dropoffs: Sequence[DropOff] = ()) -> Wor
     return World(tuple(boxes), tuple(dropoffs))
 
 
-def _linear_triangulate(rig: StereoRig, pixels: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Least-squares (X, Y, Z) from (N, 4) r1 c1 r2 c2 with the model of SPEC §2.
-
-    Camera i gives x_i·Z = −(f/K)·X and y_i·Z = (f/K)·(Y − Y_i) — four equations linear in
-    (X, Y, Z), solved per point by the normal equations (all four image coordinates used).
-    """
-    n = len(pixels)
-    A = np.zeros((n, 4, 3))
-    b = np.zeros((n, 4))
-    for k, cam in enumerate((rig.cam1, rig.cam2)):
-        off = cam.ideal_offsets(pixels[:, 2 * k : 2 * k + 2])
-        fk = cam.f_over_k_px
-        A[:, 2 * k, 0] = fk
-        A[:, 2 * k, 2] = off[:, 0]
-        A[:, 2 * k + 1, 1] = fk
-        A[:, 2 * k + 1, 2] = -off[:, 1]
-        b[:, 2 * k + 1] = fk * cam.y_mm
-    At = np.transpose(A, (0, 2, 1))
-    sol = np.linalg.solve(At @ A, At @ b[:, :, None])[:, :, 0]
-    return np.asarray(sol, dtype=np.float64)
-
-
 def observe(
     hits: LaserHits,
     rig: StereoRig,
     pixel_sigma_px: float = 0.2,
     rng: np.random.Generator | int = 0,
     floor_depth_mm: float | None = None,
+    method: TriangulationMethod = "best",
 ) -> tuple[PointCloud, NDArray[np.uint8]]:
     """A noisy measured cloud of the dots both mirrors see, and their truth classes.
 
-    A stand-in for render → detect → match → triangulate when only the geometry matters (tests of
+    A stand-in for render → detect → match when only the geometry matters (tests of
     classification and mapping, the fast simulator path): project each visible dot, add Gaussian
-    pixel noise of ``pixel_sigma_px`` to r1, c1, r2, c2, triangulate by linear least squares, and
-    give each point the first-order covariance σ²·J·Jᵀ (J by central differences). ``classes`` of
-    the returned cloud are all FLOOR — classification is the caller's job.
+    pixel noise of ``pixel_sigma_px`` to r1, c1, r2, c2, and triangulate with
+    :func:`omnid.core.triangulate.triangulate` (``method``), which also gives each point's
+    covariance. ``classes`` of the returned cloud are all FLOOR — classification is the caller's.
     """
+    from omnid.core.triangulate import triangulate
+
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     keep = hits.visible
     truth = hits.truth[keep]
     pix = rig.project(hits.xyz[keep])
     pix = pix + gen.normal(0.0, pixel_sigma_px, pix.shape)
-    xyz = _linear_triangulate(rig, pix)
-    J = np.zeros((len(pix), 3, 4))
-    step = 0.05
-    for k in range(4):
-        dp = np.zeros(4)
-        dp[k] = step
-        J[:, :, k] = (_linear_triangulate(rig, pix + dp) - _linear_triangulate(rig, pix - dp)) / (
-            2 * step
-        )
-    cov = pixel_sigma_px**2 * J @ np.transpose(J, (0, 2, 1))
+    xyz, cov = triangulate(rig, pix, method=method, pixel_sigma_px=pixel_sigma_px)
     H = rig.floor_depth_mm if floor_depth_mm is None else floor_depth_mm
-    cloud = PointCloud(xyz, cov, pix, np.zeros(len(xyz), dtype=np.uint8), float(H))
+    cloud = PointCloud(
+        np.asarray(xyz, dtype=np.float64),
+        np.asarray(cov, dtype=np.float64),
+        pix,
+        np.zeros(len(pix), dtype=np.uint8),
+        float(H),
+    )
     return cloud, truth

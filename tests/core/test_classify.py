@@ -18,7 +18,7 @@ RIG = StereoRig.nominal()
 PIXEL_SIGMA_PX = 0.2
 
 
-def _runs():
+def _runs(method: str = "best"):
     """(true heights, truth, predicted) over every named scene and five noise seeds."""
     pat = DotPattern()
     for name in scenes.scene_names():
@@ -26,7 +26,7 @@ def _runs():
         hits = cast_laser(sc.world, sc.pose, sc.mount, pat, RIG)
         true_h = sc.mount.height_mm - hits.xyz[hits.visible, 2]
         for seed in range(5):
-            cloud, truth = observe(hits, RIG, PIXEL_SIGMA_PX, seed, sc.mount.height_mm)
+            cloud, truth = observe(hits, RIG, PIXEL_SIGMA_PX, seed, sc.mount.height_mm, method)
             yield name, true_h, truth, classify(cloud)
 
 
@@ -46,6 +46,16 @@ def test_classification_is_right_on_distinguishable_dots_and_never_calls_tall_th
     assert total > 25_000
     assert wrong / total <= 0.01, f"{wrong} of {total} distinguishable dots misclassified"
     assert wrong_all / total_all <= 0.02, f"{wrong_all} of {total_all} dots misclassified"
+
+
+def test_thesis_triangulation_covariance_classifies_nearly_as_well():
+    # The thesis closed form (3 of 4 coordinates, eqs. 6.5-6.9) with its error model (6.10-6.11).
+    total = wrong = 0
+    for _name, true_h, truth, pred in _runs("thesis"):
+        distinguishable = (truth == PointClass.FLOOR) | (np.abs(true_h) >= 60.0)
+        total += int(distinguishable.sum())
+        wrong += int((distinguishable & (pred != truth)).sum())
+    assert wrong / total <= 0.01
 
 
 def test_dropoff_and_floor_dots_of_the_dropoff_scene():

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from omnid.core.classify import with_classes
 from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings, classified
@@ -15,7 +17,7 @@ from omnid.core.occupancy import CellState, GridSettings
 from omnid.core.types import PointClass, PointCloud
 from omnid.errors import ConfigError
 from omnid.sim import scenes
-from omnid.sim.world import Box, RigMount, World, cast_laser, observe
+from omnid.sim.world import Box, DropOff, RigMount, World, cast_laser, observe
 
 RIG = StereoRig.nominal()
 MOUNT = RigMount(x_offset_mm=300.0, height_mm=1100.0)
@@ -116,15 +118,60 @@ def test_region_beyond_a_dropoff_edge_is_never_free():
     assert m.state_at([[1000.0, 0.0]])[0] == CellState.FREE
 
 
+def test_deep_stairwell_reads_dropoff_all_the_way():
+    # 1 m down: the lowered dots land far beyond the edge (gaps too long to triangulate), yet the
+    # rays' floor-level crossings mark the missing floor right from the edge.
+    edge = 800.0  # rig X; robot x = 1100
+    pit = DropOff(edge + 300.0, 5000.0, -3000.0, 3000.0, 1000.0)
+    sc = scenes.Scene("stairwell", World((), (pit,)), MOUNT)
+    m = fresh()
+    m.update(scene_cloud(sc), MOUNT.x_offset_mm)
+    xs = np.arange(1110.0, 1700.0, 20.0)
+    states = m.state_at(np.column_stack([xs, np.zeros_like(xs)]))
+    assert np.all(states == CellState.DROPOFF)
+    d = m.nearest_blocking_distance_mm(350.0, 3000.0)
+    assert 1100.0 - 110.0 - RES <= d <= 1100.0 + RES
+
+
 def test_unseen_cells_keep_their_state_and_seen_cells_are_updated():
     box = Box(1300.0, 1550.0, -200.0, 200.0, 250.0)
     m = fresh()
     m.update(scene_cloud(scenes.Scene("box", World((box,)), MOUNT)), MOUNT.x_offset_mm)
     m.update(PointCloud(), MOUNT.x_offset_mm)  # empty cloud
     assert m.state_at([[1400.0, 0.0]])[0] == CellState.OBSTACLE
-    # The box was taken away and the laser sees bare floor there now.
-    m.update(scene_cloud(scenes.floor(MOUNT)), MOUNT.x_offset_mm)
-    assert m.state_at([[1400.0, 0.0]])[0] == CellState.FREE
+    # The box was taken away and the laser sees bare floor there now: cells with a floor dot in
+    # them clear at once, the rest after clear_after_contradictions (3) captures in a row.
+    box_cells = np.array([[x, y] for x in range(1325, 1550, 50) for y in range(-175, 200, 50)])
+    m.update(scene_cloud(scenes.floor(MOUNT), seed=1), MOUNT.x_offset_mm)
+    left = np.sum(m.state_at(box_cells) == CellState.OBSTACLE)
+    assert 0 < left < len(box_cells)
+    m.update(scene_cloud(scenes.floor(MOUNT), seed=2), MOUNT.x_offset_mm)
+    assert 0 < np.sum(m.state_at(box_cells) == CellState.OBSTACLE) <= left
+    m.update(scene_cloud(scenes.floor(MOUNT), seed=3), MOUNT.x_offset_mm)
+    assert np.all(m.state_at(box_cells) == CellState.FREE)
+
+
+def test_filling_between_floor_dots_does_not_erase_a_remembered_thin_post():
+    m = fresh()
+    floor_cloud = scene_cloud(scenes.floor(MOUNT), truth_classes=True)
+    xy = floor_cloud.xyz[:, :2] + [MOUNT.x_offset_mm, 0.0]
+    # A post between floor dots: seen once (one dot on it), then missed by the lattice.
+    post_robot = np.array([[1300.0 + 55.0, 55.0]])
+    assert np.min(np.linalg.norm(xy * [1, -1] - post_robot, axis=1)) > 40.0
+    m.update(_obstacle_cloud(post_robot), 0.0)
+    m.update(floor_cloud, MOUNT.x_offset_mm)
+    assert m.state_at(post_robot)[0] == CellState.OBSTACLE
+    # Its neighbourhood became free, and a floor dot landing in the cell does clear it.
+    assert m.state_at(np.add(post_robot, [0.0, 110.0]))[0] == CellState.FREE
+    m.update(_floor_cloud(post_robot), 0.0)
+    assert m.state_at(post_robot)[0] == CellState.FREE
+
+
+def _floor_cloud(xy_robot):
+    xy = np.asarray(xy_robot, dtype=np.float64)
+    n = len(xy)
+    xyz = np.column_stack([xy[:, 0], -xy[:, 1], np.full(n, 1100.0)])
+    return PointCloud(xyz, np.zeros((n, 3, 3)), np.zeros((n, 4)), np.zeros(n, np.uint8))
 
 
 def test_remembered_cells_age_out_when_asked():
@@ -193,3 +240,72 @@ def test_settings_validated_and_blocked_cells_listed():
     np.testing.assert_allclose(m.blocked_xy_mm(), [[1025.0, 325.0]])
     with pytest.raises(ValueError, match="non-finite"):
         m.move(float("nan"), 0.0, 0.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    pts=st.lists(
+        st.tuples(
+            st.floats(-6000, 6000),
+            st.floats(-6000, 6000),
+            st.floats(1.0, 3000.0),
+            st.sampled_from([0, 1, 2]),
+        ),
+        max_size=30,
+    ),
+    motion=st.tuples(st.floats(-2000, 2000), st.floats(-2000, 2000), st.floats(-7, 7)),
+    dup=st.booleans(),
+)
+def test_any_cloud_and_motion_keep_the_map_well_formed(pts, motion, dup):
+    # Arbitrary, degenerate (collinear, duplicate, off-grid) clouds never break the map.
+    arr = np.array([p[:3] for p in pts], dtype=np.float64).reshape(-1, 3)
+    cls = np.array([p[3] for p in pts], dtype=np.uint8)
+    if dup and len(arr):
+        arr, cls = np.vstack([arr, arr]), np.concatenate([cls, cls])
+    n = len(arr)
+    cloud = PointCloud(arr, np.zeros((n, 3, 3)), np.zeros((n, 4)), cls)
+    m = fresh()
+    m.update(cloud, 300.0, now_s=1.0)
+    m.move(*motion)
+    m.update(cloud, 300.0, now_s=2.0)
+    states = m.grid.states
+    assert states.dtype == np.int8 and set(np.unique(states)) <= {0, 1, 2, 3}
+    d = m.nearest_blocking_distance_mm(300.0, 2000.0)
+    assert d == math.inf or 0.0 <= d <= 2000.0 + RES
+
+
+def test_driving_and_turning_through_a_scene_keeps_obstacles_where_they_are_in_the_world():
+    # The chair drives 600 mm forward in steps, then turns 90° left on the spot, casting the
+    # laser at each true pose and telling the map the motion between them. At the end every
+    # remembered OBSTACLE cell must lie on a box (in the world), and each box must be remembered
+    # although the laser now looks elsewhere.
+    sc = scenes.three_boxes(MOUNT)
+    m = fresh()
+    poses = [(x, 0.0, 0.0) for x in np.arange(0.0, 601.0, 40.0)]
+    poses += [(600.0, 0.0, th) for th in np.linspace(0.05, math.pi / 2, 12)]
+    prev = None
+    for k, pose in enumerate(poses):
+        if prev is not None:
+            # Motion in the old robot frame.
+            c, s = math.cos(prev[2]), math.sin(prev[2])
+            dxw, dyw = pose[0] - prev[0], pose[1] - prev[1]
+            m.move(c * dxw + s * dyw, -s * dxw + c * dyw, pose[2] - prev[2])
+        hits = cast_laser(sc.world, pose, sc.mount, DotPattern(), RIG)
+        cloud, _ = observe(hits, RIG, 0.2, k, sc.mount.height_mm)
+        m.update(with_classes(cloud), sc.mount.x_offset_mm)
+        prev = pose
+    x0, y0, th = poses[-1]
+    blocked = m.grid.states == CellState.OBSTACLE
+    xs, ys = m.grid.cell_centers()
+    i, j = np.nonzero(blocked)
+    c, s = math.cos(th), math.sin(th)
+    wx = x0 + c * xs[i] - s * ys[j]
+    wy = y0 + s * xs[i] + c * ys[j]
+    margin = 2 * RES
+    near_box = np.zeros(len(i), dtype=bool)
+    for b in sc.world.boxes:
+        on = (wx >= b.x_min_mm - margin) & (wx <= b.x_max_mm + margin)
+        on &= (wy >= b.y_min_mm - margin) & (wy <= b.y_max_mm + margin)
+        near_box |= on
+        assert on.sum() >= 2, f"box {b} forgotten"
+    assert np.mean(near_box) >= 0.97

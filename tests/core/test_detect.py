@@ -1,0 +1,120 @@
+"""The best detector on rendered 640x480 captures with known dot centres."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from omnid.config import from_mapping
+from omnid.core.detect import DetectionParams, detect_dots
+from omnid.core.geometry import StereoRig
+from omnid.core.laser import DotPattern
+from omnid.errors import ConfigError, InputError
+from omnid.sim.render import RenderOptions, render_capture, visible_truth
+
+RIG = StereoRig.nominal()
+DOTS = DotPattern(rows=30, cols=34, step_slope=0.07).on_plane(RIG.floor_depth_mm)  # ~870 in disk
+EDGE_MARGIN_PX = 4.0  # dots this close to the disk edge lose light to it: not scored
+
+
+def _score(found: np.ndarray, truth: np.ndarray, tol_px: float = 1.5):
+    """(recall, false positives, centre RMS px) with one-to-one nearest-neighbour matching."""
+    found = found[RIG.cam1.in_disk(found[:, :2], EDGE_MARGIN_PX)]
+    d = np.hypot(found[:, None, 0] - truth[None, :, 0], found[:, None, 1] - truth[None, :, 1])
+    j = d.argmin(axis=1)
+    i = d.argmin(axis=0)
+    mutual = (i[j] == np.arange(len(found))) & (d.min(axis=1) < tol_px)
+    err = found[mutual, :2] - truth[j[mutual]]
+    return mutual.sum() / len(truth), int((~mutual).sum()), float(np.sqrt((err**2).sum(1).mean()))
+
+
+def _run(options: RenderOptions, seed: int = 3):
+    cap = render_capture(RIG, DOTS, options, seed=seed)
+    truth = visible_truth(RIG.cam1, RIG.cam1.project(DOTS), EDGE_MARGIN_PX)
+    return detect_dots(cap.mask1, cap.base1, "best"), truth
+
+
+# Realistic sensor: read + shot noise, 3 % flicker between mask and base, gray or BGR.
+SENSOR = {"halo_fraction": 0.0, "ghost_fraction": 0.0}
+
+
+@pytest.mark.parametrize("color", [False, True], ids=["gray", "bgr"])
+@pytest.mark.parametrize("seed", [3, 11])
+def test_subpixel_centres_within_a_tenth_of_a_pixel(color, seed):
+    found, truth = _run(RenderOptions.realistic(color=color, **SENSOR), seed)
+    recall, fp, rms = _score(found, truth)
+    assert recall >= 0.995
+    assert fp == 0
+    assert rms <= 0.1  # tolerance: 0.1 px RMS (measured ≈ 0.04–0.06)
+
+
+def test_strong_flicker_is_removed_as_local_background():
+    found, truth = _run(RenderOptions.realistic(flicker=0.15, background_texture=40.0, **SENSOR))
+    recall, fp, rms = _score(found, truth)
+    assert recall >= 0.995 and fp == 0 and rms <= 0.1
+
+
+def test_halos_and_ghosts_do_not_make_false_dots():
+    # Speckled sparkle halos and ghost reflections (3 % of dots) on top of the sensor effects.
+    found, truth = _run(RenderOptions.realistic())
+    recall, fp, rms = _score(found, truth)
+    assert recall >= 0.99
+    assert fp <= 0.01 * len(truth)
+    assert rms <= 0.2  # the speckle grains on the dots themselves move them (measured ≈ 0.12)
+
+
+def test_strength_is_the_dot_brightness():
+    found, _ = _run(RenderOptions(spot_peak_jitter=0.0, noise_sigma=1.0))
+    # Smoothed peak of a 150-gray dot of sigma ≈ 1.3 px: clearly above noise, below the peak.
+    assert 60 < np.median(found[:, 2]) < 150
+
+
+def test_blank_and_black_images_give_an_empty_array_without_warnings():
+    black = np.zeros((480, 640), np.uint8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for method in ("best", "thesis"):
+            out = detect_dots(black, black, method)
+            assert out.shape == (0, 3) and out.dtype == np.float64
+            cap = render_capture(RIG, np.zeros((0, 3)), RenderOptions.realistic(), seed=1)
+            assert detect_dots(cap.mask1, cap.base1, method).shape == (0, 3)
+            flat = np.full((480, 640, 3), 255, np.uint8)
+            assert detect_dots(flat, flat, method).shape == (0, 3)
+            assert detect_dots(black[:0, :0], black[:0, :0], method).shape == (0, 3)
+            assert detect_dots(black[:5, :5], black[:5, :5], method).shape == (0, 3)
+
+
+@pytest.mark.parametrize(
+    ("mask", "base", "words"),
+    [
+        (np.zeros((10, 10, 4), np.uint8), np.zeros((10, 10, 4), np.uint8), "shape"),
+        (np.zeros((10,), np.uint8), np.zeros((10,), np.uint8), "shape"),
+        (np.zeros((10, 10), np.int32), np.zeros((10, 10), np.int32), "dtype"),
+        (np.zeros((10, 10), np.uint8), np.zeros((12, 10), np.uint8), "differ in shape"),
+        (np.zeros((10, 10), np.uint8), np.zeros((10, 10), np.uint16), "differ in dtype"),
+        (np.full((10, 10), np.nan), np.zeros((10, 10)), "NaN"),
+        ([[1, 2], [3, 4]], np.zeros((2, 2), np.uint8), "numpy"),
+    ],
+)
+def test_bad_input_raises_input_error_naming_it(mask, base, words):
+    with pytest.raises(InputError, match=words):
+        detect_dots(mask, base)
+
+
+def test_unknown_method_is_refused():
+    z = np.zeros((10, 10), np.uint8)
+    with pytest.raises(ValueError, match="unknown detection method"):
+        detect_dots(z, z, "magic")  # type: ignore[arg-type]
+
+
+def test_params_load_from_config_with_range_checks():
+    p = from_mapping(DetectionParams, {"block_coefficient": 2.0, "bgr_weights": [0, 1, 0]})
+    assert p.block_coefficient == 2.0 and p.bgr_weights == (0.0, 1.0, 0.0)
+    with pytest.raises(ConfigError, match="block_coefficient"):
+        from_mapping(DetectionParams, {"block_coefficient": -1.0})
+    with pytest.raises(ConfigError, match="best_relative_peak"):
+        from_mapping(DetectionParams, {"best_relative_peak": 1.5})
+    with pytest.raises(ConfigError, match="ring_e1_gra"):
+        from_mapping(DetectionParams, {"ring_e1_gra": 1.0})

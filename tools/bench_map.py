@@ -1,0 +1,126 @@
+"""Benchmark of the map path: ray casting, classification, free-space update and motion.
+
+    python tools/bench_map.py [--points 1500] [--repeats 50]
+
+Runs on one core (BLAS and OpenCV threads pinned to 1) and prints median wall times in ms, each
+with its ratio to a reference measured in the same run: the thesis-style map — marking only the
+cells under the dots (``OccupancyGrid.mark`` per class), no free-area filling, no memory.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+
+import cv2  # noqa: E402
+
+from omnid.core.classify import classify, with_classes  # noqa: E402
+from omnid.core.freespace import FreeSpaceMap  # noqa: E402
+from omnid.core.geometry import StereoRig  # noqa: E402
+from omnid.core.laser import DotPattern  # noqa: E402
+from omnid.core.occupancy import CellState, OccupancyGrid, rig_to_robot  # noqa: E402
+from omnid.core.types import PointClass  # noqa: E402
+from omnid.sim import scenes  # noqa: E402
+from omnid.sim.world import cast_laser, observe  # noqa: E402
+
+
+def median_ms(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=1500, help="laser rays (approximately)")
+    ap.add_argument("--repeats", type=int, default=50)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+
+    cols = 50
+    rows = max(1, round(args.points / cols))
+    pattern = DotPattern(rows=rows, cols=cols, step_slope=0.06, forward_min_slope=0.3)
+    rig = StereoRig.nominal()
+    sc = scenes.three_boxes()
+    hits = cast_laser(sc.world, sc.pose, sc.mount, pattern, rig)
+    cloud, _ = observe(hits, rig, 0.2, 0, sc.mount.height_mm)
+    cloud = with_classes(cloud)
+    off = sc.mount.x_offset_mm
+    print(f"scene three_boxes, {len(hits)} rays, {len(cloud)} points seen by both mirrors")
+
+    def reference() -> None:
+        g = OccupancyGrid()
+        xy = rig_to_robot(cloud.xyz, off)
+        for cls, state in (
+            (PointClass.FLOOR, CellState.FREE),
+            (PointClass.DROPOFF, CellState.DROPOFF),
+            (PointClass.OBSTACLE, CellState.OBSTACLE),
+        ):
+            g.mark(xy[cloud.classes == cls], state)
+
+    fmap = FreeSpaceMap()
+    fmap.update(cloud, off)
+
+    def update() -> None:
+        fmap.update(cloud, off, now_s=time.monotonic())
+
+    def move_small() -> None:
+        fmap.move(10.0, 0.0, 0.01)
+        fmap.move(-10.0, 0.0, -0.01)
+
+    def move_reanchor() -> None:
+        fmap.move(1200.0, 0.0, 0.3)  # beyond reanchor_distance_mm: resamples the grid
+        fmap.move(0.0, 0.0, -0.3)
+        fmap.move(-1200.0, 0.0, 0.0)
+
+    def update_and_move() -> None:
+        update()
+        fmap.move(10.0, 0.0, 0.01)
+
+    def grid_view() -> None:
+        fmap.move(1.0, 0.0, 0.0)  # invalidates the cached robot-frame grid
+        _ = fmap.grid
+
+    def corridor() -> None:
+        fmap.nearest_blocking_distance_mm(350.0, 3000.0, curvature_per_mm=1.0 / 2000.0)
+
+    ref = median_ms(reference, args.repeats)
+    rows_out = [
+        ("reference: mark dot cells only", ref),
+        (
+            "cast_laser",
+            median_ms(lambda: cast_laser(sc.world, sc.pose, sc.mount, pattern, rig), args.repeats),
+        ),
+        (
+            "observe (noise + triangulate + cov)",
+            median_ms(lambda: observe(hits, rig, 0.2, 0), args.repeats),
+        ),
+        ("classify", median_ms(lambda: classify(cloud), args.repeats)),
+        ("FreeSpaceMap.update", median_ms(update, args.repeats)),
+        ("FreeSpaceMap.move x2 (small)", median_ms(move_small, args.repeats)),
+        ("FreeSpaceMap.move x3 (one re-anchor)", median_ms(move_reanchor, args.repeats)),
+        ("update + move", median_ms(update_and_move, args.repeats)),
+        ("grid view (resample to robot frame)", median_ms(grid_view, args.repeats)),
+        ("nearest_blocking_distance_mm (arc, 3 m)", median_ms(corridor, args.repeats)),
+    ]
+    print(f"{'step':42s} {'median ms':>10s} {'x reference':>12s}")
+    for name, ms in rows_out:
+        ratio = ms / ref if ref > 0 and math.isfinite(ms) else float("nan")
+        print(f"{name:42s} {ms:10.3f} {ratio:12.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
