@@ -348,20 +348,6 @@ def _tilt_reading_type() -> Any:
 # -- perception ---------------------------------------------------------------------------------
 
 
-class _RefusalLog(logging.Handler):
-    """Collects the daemon's refusal log records (every refusal is logged with its reason)."""
-
-    def __init__(self, clock: Callable[[], float]) -> None:
-        super().__init__(logging.INFO)
-        self.clock = clock
-        self.records: list[tuple[float, str]] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        msg = record.getMessage()
-        if "refus" in msg.lower():
-            self.records.append((self.clock(), msg))
-
-
 def _perimeter(chair: Chair, per_side: int = 6) -> NDArray[np.float64]:
     c = chair.footprint()
     t = np.linspace(0.0, 1.0, per_side, endpoint=False)[:, None]
@@ -530,9 +516,6 @@ class Simulator:
 
         tilt_type = _tilt_reading_type() if self.rider is not None else None
 
-        refusal_log = _RefusalLog(lambda: self.now_s)
-        daemon_log = logging.getLogger("omnid.daemon")
-        daemon_log.addHandler(refusal_log)
         traj: list[tuple[float, float, float, float]] = []
         cmds: list[tuple[float, float, float, float, float]] = []
         contacts: list[tuple[float, Contact]] = []
@@ -545,76 +528,72 @@ class Simulator:
         last_refusal = ""
         wall0 = time.perf_counter()
         last_progress = -math.inf
-        try:
-            for k in range(n_ticks + 1):
-                now = k * dt
-                self.now_s = now
-                if self.rider is not None and tilt_type is not None and k % k_tilt == 0:
-                    roll, pitch = self.rider.at(now)
-                    self.controller.on_tilt(tilt_type(roll, pitch, now))
-                if self.keys is not None:
-                    for _, command in self.keys.between(now - dt, now):
-                        self.controller.on_key(command, now)
-                # Deliver finished perception results (charged with their computing time).
-                while pending and pending[0][0] <= now + 1e-9:
-                    _, t_cap, cloud, pose = pending.pop(0)
-                    self.controller.on_perception(cloud, t_cap)
-                    keep = cloud.classes != PointClass.FLOOR
-                    if np.any(keep):
-                        w = rig_to_world(cloud.xyz[keep], pose, self.mount)
-                        seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
-                if k % k_perc == 0:
-                    w0 = time.perf_counter()
-                    cloud = self.perceive_now()
-                    took = time.perf_counter() - w0
-                    t_perc.append(took)
-                    ready = now + max(took, s.perception_latency_s)
-                    pending.append((ready, now, cloud, self.chair.pose))
-                if k % k_ctrl == 0:
-                    w0 = time.perf_counter()
-                    command = self.controller.step(now)
-                    t_ctrl.append(time.perf_counter() - w0)
-                    last_refusal = self._note_decision(now, refusals, last_refusal)
-                    status = self.control_unit.exchange(command, now)
-                    if status is not None:
-                        self.controller.on_status(status)
-                    cmds.append(
-                        (
-                            now,
-                            float(command.left_duty),
-                            float(command.right_duty),
-                            float(command.laser_on),
-                            float(command.enable),
-                        )
+        for k in range(n_ticks + 1):
+            now = k * dt
+            self.now_s = now
+            if self.rider is not None and tilt_type is not None and k % k_tilt == 0:
+                roll, pitch = self.rider.at(now)
+                self.controller.on_tilt(tilt_type(roll, pitch, now))
+            if self.keys is not None:
+                for _, command in self.keys.between(now - dt, now):
+                    self.controller.on_key(command, now)
+            # Deliver finished perception results (charged with their computing time).
+            while pending and pending[0][0] <= now + 1e-9:
+                _, t_cap, cloud, pose = pending.pop(0)
+                self.controller.on_perception(cloud, t_cap)
+                keep = cloud.classes != PointClass.FLOOR
+                if np.any(keep):
+                    w = rig_to_world(cloud.xyz[keep], pose, self.mount)
+                    seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
+            if k % k_perc == 0:
+                w0 = time.perf_counter()
+                cloud = self.perceive_now()
+                took = time.perf_counter() - w0
+                t_perc.append(took)
+                ready = now + max(took, s.perception_latency_s)
+                pending.append((ready, now, cloud, self.chair.pose))
+            if k % k_ctrl == 0:
+                w0 = time.perf_counter()
+                command = self.controller.step(now)
+                t_ctrl.append(time.perf_counter() - w0)
+                last_refusal = self._note_decision(now, refusals, last_refusal)
+                status = self.control_unit.exchange(command, now)
+                if status is not None:
+                    self.controller.on_status(status)
+                cmds.append(
+                    (
+                        now,
+                        float(command.left_duty),
+                        float(command.right_duty),
+                        float(command.laser_on),
+                        float(command.enable),
                     )
-                if k % k_rec == 0:
-                    traj.append((now, *self.chair.pose))
-                    min_clear = min(
-                        min_clear,
-                        _clearance(_perimeter(self.chair), self._box_rects),
-                        _clearance(
-                            np.array(list(self.chair.support_points().values())), self._drop_rects
-                        ),
-                    )
-                    if self.progress is not None and now - last_progress >= 1.0:
-                        last_progress = now
-                        self.progress(now, self)
-                found = self.chair.contacts(self.course.world)
-                new = [c for c in found if all(c != old for _, old in contacts)]
-                if new:
-                    min_clear = 0.0
-                for c in new:
-                    log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
-                    contacts.append((now, c))
-                if new and s.stop_on_contact:
-                    traj.append((now, *self.chair.pose))
-                    break
-                if k < n_ticks:
-                    self.control_unit.advance(now, dt)
-        finally:
-            daemon_log.removeHandler(refusal_log)
+                )
+            if k % k_rec == 0:
+                traj.append((now, *self.chair.pose))
+                min_clear = min(
+                    min_clear,
+                    _clearance(_perimeter(self.chair), self._box_rects),
+                    _clearance(
+                        np.array(list(self.chair.support_points().values())), self._drop_rects
+                    ),
+                )
+                if self.progress is not None and now - last_progress >= 1.0:
+                    last_progress = now
+                    self.progress(now, self)
+            found = self.chair.contacts(self.course.world)
+            new = [c for c in found if all(c != old for _, old in contacts)]
+            if new:
+                min_clear = 0.0
+            for c in new:
+                log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
+                contacts.append((now, c))
+            if new and s.stop_on_contact:
+                traj.append((now, *self.chair.pose))
+                break
+            if k < n_ticks:
+                self.control_unit.advance(now, dt)
         wall = time.perf_counter() - wall0
-        refusals += refusal_log.records
         timings = {
             "wall_s": wall,
             "virtual_s": self.now_s,
