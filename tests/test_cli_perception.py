@@ -8,13 +8,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from match_helpers import misaligned_rig
 
 from omnid.cli import main
 from omnid.core.laser import DotPattern
 from omnid.core.types import StereoCapture
 from omnid.sim.render import render_capture
-
-from .core.test_calibration import misaligned_rig
 
 H = 1100.0
 

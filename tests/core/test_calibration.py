@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from match_helpers import misaligned_rig
 
 from omnid.core.calibration import Calibration, calibrate_from_capture, fit_mirror_disk
 from omnid.core.geometry import StereoRig
@@ -18,26 +18,6 @@ from omnid.errors import CalibrationError, ConfigError
 from omnid.sim.render import render_capture
 
 H = 1100.0
-
-
-def misaligned_rig(floor_depth_mm: float = H) -> StereoRig:
-    """Centres a few px off, f/K differing by a few %, rotations of 1.5° and −1°."""
-    nom = StereoRig.nominal(floor_depth_mm=floor_depth_mm)
-    c1 = replace(
-        nom.cam1,
-        center_row_px=nom.cam1.center_row_px + 3.0,
-        center_col_px=nom.cam1.center_col_px - 2.0,
-        f_over_k_px=108.3 * 1.03,
-        rotation_rad=math.radians(1.5),
-    )
-    c2 = replace(
-        nom.cam2,
-        center_row_px=nom.cam2.center_row_px - 2.0,
-        center_col_px=nom.cam2.center_col_px + 4.0,
-        f_over_k_px=108.3 * 0.98,
-        rotation_rad=math.radians(-1.0),
-    )
-    return StereoRig(c1, c2, floor_depth_mm)
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from match_helpers import misaligned_rig
 from numpy.typing import NDArray
 
 from omnid.core.calibration import Calibration, calibrate_from_capture
@@ -12,8 +13,6 @@ from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.matching import match_dots, match_dots_indexed
 from omnid.sim.render import render_capture
-
-from .test_calibration import misaligned_rig
 
 H = 1100.0
 
