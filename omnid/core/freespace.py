@@ -39,6 +39,8 @@ from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid, rig_to_
 from omnid.core.types import PointClass, PointCloud
 
 _UNSEEN = 255  # observation layer: this update says nothing about the cell
+# Per-dot flags of the lattice fill (combined over a triangle's corners).
+_F_FLOOR, _F_OBSTACLE, _F_DROPOFF, _F_LOW, _F_INSIDE, _F_INSIDE_C = 1, 2, 4, 8, 16, 32
 
 
 @dataclass(frozen=True)
@@ -222,11 +224,13 @@ class FreeSpaceMap:
             crossing = xyz[low] * (H / xyz[low, 2])[:, None]
             xy0 = _to_frame(self._pose, rig_to_robot(crossing, rig_x_offset_mm))
             segments = np.stack([xy0, xy[low]], axis=1)
-            # The crossings also join the triangulation as drop-off corners, so the strip between
-            # the last floor dots and the first crossings reads DROPOFF too.
+            # The crossings also join the fill as drop-off corners (a lowered dot's triangles are
+            # filled once at its dot and once at its crossing), so the strip between the last
+            # floor dots and the first crossings reads DROPOFF too; their cells are drop-off dots.
+            n_dots = len(xy)
             xy = np.vstack([xy, xy0])
             cls = np.concatenate([cls, np.full(len(xy0), PointClass.DROPOFF, np.uint8)])
-            obs, direct_free = self._observation(xy, cls, cv2, segments)
+            obs, direct_free = self._observation(xy, cls, cv2, segments, xyz, low, n_dots)
             seen = obs != _UNSEEN
             # Free area filled in between floor dots is an interpolation: it must not erase a
             # remembered obstacle or drop-off (a thin post can fall between the dots of one
@@ -263,18 +267,21 @@ class FreeSpaceMap:
         cls: NDArray[np.uint8],
         cv2,
         missing_floor: NDArray[np.float64],
+        xyz: NDArray[np.float64],
+        low: NDArray[np.bool_],
+        n_dots: int,
     ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
         """The cells one cloud speaks about: uint8 CellState values, _UNSEEN elsewhere; and the
         mask of cells FREE because a floor dot lies in them (not by filling between dots).
 
-        ``missing_floor`` (M, 2, 2): anchor-frame segments along which the floor is known to be
-        missing (a lowered dot's ray from its floor-level crossing to the dot).
+        ``xy`` (N, 2): anchor-frame positions of the ``n_dots`` dots (rig positions ``xyz``,
+        ``low``: lowered drop-off dots), followed by the floor-level crossings of the lowered
+        dots' rays, in order; ``missing_floor`` (M, 2, 2): anchor-frame segments along which the
+        floor is known to be missing (a lowered dot's ray from its crossing to the dot).
         """
         st = self.settings
         shape = self._anchor.states.shape
         obs = np.full(shape, _UNSEEN, dtype=np.uint8)
-        shift = 4
-        scale = float(1 << shift)
         pix = self._pixels(xy)
         inside = (
             (pix[:, 0] > -1) & (pix[:, 0] < shape[1]) & (pix[:, 1] > -1) & (pix[:, 1] < shape[0])
@@ -282,28 +289,8 @@ class FreeSpaceMap:
         floor = cls == PointClass.FLOOR
         obstacle = cls == PointClass.OBSTACLE
         dropoff = cls == PointClass.DROPOFF
-
-        tri = _delaunay(xy[inside]) if inside.sum() >= 3 else np.zeros((0, 3), dtype=np.intp)
-        if len(tri):
-            idx = np.flatnonzero(inside)[tri]  # (T, 3) indices into xy
-            corners = xy[idx]  # (T, 3, 2)
-            edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-            tcls = cls[idx]
-            all_floor = np.all(tcls == PointClass.FLOOR, axis=1)
-            any_drop = np.any(tcls == PointClass.DROPOFF, axis=1)
-            any_obst = np.any(tcls == PointClass.OBSTACLE, axis=1)
-            polys = np.rint(pix[idx] * scale).astype(np.int32)  # (T, 3, 2)
-            free_t = all_floor & (edges <= st.free_max_edge_mm)
-            drop_t = any_drop & ~any_obst & (edges <= st.dropoff_max_edge_mm)
-            obst_t = np.all(tcls == PointClass.OBSTACLE, axis=1) & (
-                edges <= st.obstacle_max_edge_mm
-            )
-            if np.any(free_t):
-                cv2.fillPoly(obs, list(polys[free_t]), int(CellState.FREE), cv2.LINE_8, shift)
-            if np.any(drop_t):
-                cv2.fillPoly(obs, list(polys[drop_t]), int(CellState.DROPOFF), cv2.LINE_8, shift)
-            if np.any(obst_t):
-                cv2.fillPoly(obs, list(polys[obst_t]), int(CellState.OBSTACLE), cv2.LINE_8, shift)
+        if not self._fill_lattice(obs, xy, cls, pix, inside, xyz, low, n_dots, cv2):
+            self._fill_delaunay(obs, xy, cls, pix, inside, cv2)
 
         cells = np.floor(pix + 0.5).astype(np.intp)  # the cell containing the point
         valid = (cells[:, 0] >= 0) & (cells[:, 0] < shape[1])
@@ -339,6 +326,104 @@ class FreeSpaceMap:
                 layer = cv2.dilate(layer, kernel)
             obs[layer > 0] = int(state)
         return obs, direct_free & (obs == CellState.FREE)
+
+    def _fill_lattice(
+        self,
+        obs: NDArray[np.uint8],
+        xy: NDArray[np.float64],
+        cls: NDArray[np.uint8],
+        pix: NDArray[np.float64],
+        inside: NDArray[np.bool_],
+        xyz: NDArray[np.float64],
+        low: NDArray[np.bool_],
+        n_dots: int,
+        cv2,
+    ) -> bool:
+        """Fill the triangles between the dots from the laser lattice's strips (see
+        :func:`_lattice_strips`); False, touching nothing, when the dots show no lattice rows."""
+        st = self.settings
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ray = np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 1e-9)
+        sel = np.flatnonzero(ray)
+        if len(sel) < 4:
+            return False
+        z = xyz[sel, 2]
+        strips = _lattice_strips(xyz[sel, 0] / z, xyz[sel, 1] / z)
+        if strips is None:
+            return False
+        strips = replace(
+            strips, tri=sel[strips.tri], a_chain=sel[strips.a_chain], b_chain=sel[strips.b_chain]
+        )
+        # Per-dot flags, combined over each triangle's corners with one AND and one OR.
+        where_low = np.flatnonzero(low)
+        inside_c = inside[:n_dots].copy()
+        inside_c[where_low] = inside[n_dots : n_dots + len(where_low)]
+        c = cls[:n_dots]
+        flags = (
+            (c == PointClass.FLOOR) * _F_FLOOR
+            | (c == PointClass.OBSTACLE) * _F_OBSTACLE
+            | (c == PointClass.DROPOFF) * _F_DROPOFF
+            | low * _F_LOW
+            | inside[:n_dots] * _F_INSIDE
+            | inside_c * _F_INSIDE_C
+        ).astype(np.uint8)
+        t0, t1, t2 = strips.tri[:, 0], strips.tri[:, 1], strips.tri[:, 2]
+        f0, f1, f2 = flags[t0], flags[t1], flags[t2]
+        every, some = f0 & f1 & f2, f0 | f1 | f2
+        near = (every & _F_INSIDE) > 0
+        edges = _longest_edge(xy, t0, t1, t2)
+        free_t = near & ((every & _F_FLOOR) > 0) & (edges <= st.free_max_edge_mm)
+        _fill_strips(obs, strips, free_t, pix, int(CellState.FREE), cv2)
+        no_obst = (some & _F_OBSTACLE) == 0
+        drop_t = near & ((some & _F_DROPOFF) > 0) & no_obst & (edges <= st.dropoff_max_edge_mm)
+        _fill_strips(obs, strips, drop_t, pix, int(CellState.DROPOFF), cv2)
+        if len(where_low):
+            # Lowered dots stand in at their floor-level crossings in a second drop-off fill.
+            xy_c = xy[:n_dots].copy()
+            xy_c[where_low] = xy[n_dots : n_dots + len(where_low)]
+            pix_c = pix[:n_dots].copy()
+            pix_c[where_low] = pix[n_dots : n_dots + len(where_low)]
+            drop_c = ((every & _F_INSIDE_C) > 0) & ((some & _F_LOW) > 0) & no_obst
+            drop_c &= _longest_edge(xy_c, t0, t1, t2) <= st.dropoff_max_edge_mm
+            _fill_strips(obs, strips, drop_c, pix_c, int(CellState.DROPOFF), cv2)
+        obst_t = near & ((every & _F_OBSTACLE) > 0) & (edges <= st.obstacle_max_edge_mm)
+        _fill_strips(obs, strips, obst_t, pix, int(CellState.OBSTACLE), cv2)
+        return True
+
+    def _fill_delaunay(
+        self,
+        obs: NDArray[np.uint8],
+        xy: NDArray[np.float64],
+        cls: NDArray[np.uint8],
+        pix: NDArray[np.float64],
+        inside: NDArray[np.bool_],
+        cv2,
+    ) -> None:
+        """Fill the triangles between the dots from a Delaunay triangulation of all of them
+        (crossings included as drop-off corners): for clouds without lattice rows."""
+        st = self.settings
+        tri = _delaunay(xy[inside]) if inside.sum() >= 3 else np.zeros((0, 3), dtype=np.intp)
+        if len(tri) == 0:
+            return
+        shift = 4
+        scale = float(1 << shift)
+        idx = np.flatnonzero(inside)[tri]  # (T, 3) indices into xy
+        edges = _longest_edge(xy, idx[:, 0], idx[:, 1], idx[:, 2])
+        tcls = cls[idx]
+        all_floor = np.all(tcls == PointClass.FLOOR, axis=1)
+        any_drop = np.any(tcls == PointClass.DROPOFF, axis=1)
+        any_obst = np.any(tcls == PointClass.OBSTACLE, axis=1)
+        polys = np.rint(pix[idx] * scale).astype(np.int32)  # (T, 3, 2)
+        free_t = all_floor & (edges <= st.free_max_edge_mm)
+        drop_t = any_drop & ~any_obst & (edges <= st.dropoff_max_edge_mm)
+        obst_t = np.all(tcls == PointClass.OBSTACLE, axis=1) & (edges <= st.obstacle_max_edge_mm)
+        for use, state in (
+            (free_t, CellState.FREE),
+            (drop_t, CellState.DROPOFF),
+            (obst_t, CellState.OBSTACLE),
+        ):
+            if np.any(use):
+                cv2.fillPoly(obs, list(polys[use]), int(state), cv2.LINE_8, shift)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -439,6 +524,20 @@ class FreeSpaceMap:
         Path(path).write_bytes(buf.tobytes())
 
 
+def _longest_edge(
+    xy: NDArray[np.float64], t0: NDArray[np.intp], t1: NDArray[np.intp], t2: NDArray[np.intp]
+) -> NDArray[np.float64]:
+    """(T,) longest side, mm, of the triangles with corners ``t0``, ``t1``, ``t2`` (T,) (indices
+    into points ``xy`` (N, 2))."""
+    x, y = xy[:, 0], xy[:, 1]
+    x0, x1, x2, y0, y1, y2 = x[t0], x[t1], x[t2], y[t0], y[t1], y[t2]
+    with np.errstate(over="ignore", invalid="ignore"):
+        d01 = (x1 - x0) ** 2 + (y1 - y0) ** 2
+        d12 = (x2 - x1) ** 2 + (y2 - y1) ** 2
+        d20 = (x0 - x2) ** 2 + (y0 - y2) ** 2
+        return np.sqrt(np.maximum(np.maximum(d01, d12), d20))
+
+
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
     """Delaunay triangles (T, 3) of indices into 2-D points ``xy`` (N, 2) (cv2.Subdiv2D)."""
     import cv2
@@ -462,6 +561,197 @@ def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
     idx = order[pos].reshape(-1, 3)
     keep = found.reshape(-1, 3).all(axis=1)
     return idx[keep].astype(np.intp)
+
+
+# -- the laser lattice ------------------------------------------------------------------------
+#
+# The laser source sits at the rig origin (SPEC §2), so a dot's slopes (X/Z, Y/Z) name its ray
+# whatever it hit: in slope space the dots of one capture form the projector's lattice, rows of
+# nearly equal X/Z. Neighbours come from that structure — adjacent rows stitched into triangle
+# strips — instead of a Delaunay triangulation of every capture, and a run of strip triangles of
+# one state is one polygon for cv2.fillPoly (a few dozen polygons instead of thousands).
+
+
+def _row_breaks(u_sorted: NDArray[np.float64]) -> NDArray[np.bool_] | None:
+    """Where sorted row slopes X/Z jump to the next lattice row: (N−1,) bool, or None when the
+    slopes show no clear row structure (then the caller triangulates generally).
+
+    Gaps between rows are a lattice step; gaps within a row are measurement noise, far smaller.
+    The split is the cliff in the gaps sorted from large to small — the last ratio of ≥ 4
+    between consecutive ones (among the larger half, so a row holds two dots on average) — which
+    tolerates missing rows and outliers (several steps) above it.
+    """
+    gaps = np.diff(u_sorted)
+    m = len(gaps)
+    if m < 3:
+        return None
+    desc = np.sort(gaps)[::-1]
+    floor = max(1e-3 * float(desc[0]), 1e-12)
+    top = np.maximum(desc[: m // 2 + 1], floor)
+    nxt = np.maximum(desc[1 : m // 2 + 2], floor)
+    cliff = np.flatnonzero(top >= 4.0 * nxt)
+    if len(cliff) == 0:
+        return None
+    k = int(cliff[-1])
+    return gaps > math.sqrt(float(top[k]) * float(nxt[k]))
+
+
+@dataclass(frozen=True)
+class _Strips:
+    """Triangle strips between adjacent lattice rows, in strip order.
+
+    tri        (T, 3) point indices of each triangle
+    strip      (T,) strip (row pair) of each triangle; consecutive triangles of one strip share
+               an edge
+    a_lo, a_hi (T,) ranks in ``a_chain`` of the near-row end points of the triangle's left and
+               right rungs (the edges it shares with its strip neighbours)
+    b_lo, b_hi (T,) likewise in ``b_chain`` for the far row
+    a_chain    point indices of every strip's near row in order along the row, strip after strip
+    b_chain    likewise for the far rows
+    flip       (T,) True where the triangle's second edge runs along the far row, which turns its
+               corner order the other way round than the near-row ones
+    """
+
+    tri: NDArray[np.intp]
+    strip: NDArray[np.intp]
+    a_lo: NDArray[np.intp]
+    a_hi: NDArray[np.intp]
+    b_lo: NDArray[np.intp]
+    b_hi: NDArray[np.intp]
+    a_chain: NDArray[np.intp]
+    b_chain: NDArray[np.intp]
+    flip: NDArray[np.bool_]
+
+
+def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips | None:
+    """Triangle strips of dots at ray slopes u = X/Z (along rows), v = Y/Z; None without rows.
+
+    Rows come from :func:`_row_breaks`; each pair of adjacent rows, both ordered by v, is
+    stitched like a zipper: walking both rows in merged v order, every dot after the first of
+    its row closes a triangle with its predecessor and the other row's latest dot. A pair of
+    rows of a and b dots gives a + b − 2 triangles, O(N log N) in all.
+    """
+    n = len(u)
+    order = np.argsort(u, kind="stable")
+    breaks = _row_breaks(u[order])
+    if breaks is None:
+        return None
+    row = np.empty(n, dtype=np.intp)
+    row[order] = np.concatenate([[0], np.cumsum(breaks)])
+    rows = int(row.max()) + 1
+    if rows < 2:
+        return None
+    # Every dot joins the strip above its row (as a near-row dot, tag 0) and the strip below it
+    # (as a far-row dot, tag 1); sorted by strip, then v.
+    near = np.flatnonzero(row < rows - 1)
+    far = np.flatnonzero(row > 0)
+    strip = np.concatenate([row[near], row[far] - 1])
+    tag = np.concatenate([np.zeros(len(near), np.int8), np.ones(len(far), np.int8)])
+    pt = np.concatenate([near, far])
+    o = np.lexsort((tag, v[pt], strip))
+    strip, tag, pt = strip[o], tag[o], pt[o]
+    m = len(pt)
+    pos = np.arange(m)
+    is_a = tag == 0
+    start = np.searchsorted(strip, strip, side="left")  # first element of each one's strip
+    last_a = np.maximum.accumulate(np.where(is_a, pos, -1))
+    last_b = np.maximum.accumulate(np.where(is_a, -1, pos))
+    a_pos, b_pos = pos[is_a], pos[~is_a]
+    first_a = a_pos[np.searchsorted(strip[is_a], strip)]  # every strip has dots of both rows
+    first_b = b_pos[np.searchsorted(strip[~is_a], strip)]
+    cur_a = np.where(last_a >= start, last_a, first_a)
+    cur_b = np.where(last_b >= start, last_b, first_b)
+    prev_a = np.concatenate([[-1], last_a[:-1]])
+    prev_b = np.concatenate([[-1], last_b[:-1]])
+    make_a = is_a & (prev_a >= start)  # a near-row dot after the first of its strip
+    make_b = ~is_a & (prev_b >= start)
+    k = np.flatnonzero(make_a | make_b)
+    ka = make_a[k]
+    # Rungs (near dot, far dot) on the left and right of each triangle, as merged positions.
+    left_a = np.where(ka, prev_a[k], cur_a[k])
+    left_b = np.where(ka, cur_b[k], prev_b[k])
+    right_a = np.where(ka, k, cur_a[k])
+    right_b = np.where(ka, cur_b[k], k)
+    third = np.where(ka, cur_b[k], cur_a[k])
+    tri = np.column_stack([pt[np.where(ka, prev_a[k], prev_b[k])], pt[k], pt[third]])
+    rank_a = np.cumsum(is_a) - 1
+    rank_b = np.cumsum(~is_a) - 1
+    return _Strips(
+        tri=tri.astype(np.intp),
+        strip=strip[k],
+        a_lo=rank_a[left_a],
+        a_hi=rank_a[right_a],
+        b_lo=rank_b[left_b],
+        b_hi=rank_b[right_b],
+        a_chain=pt[a_pos],
+        b_chain=pt[b_pos],
+        flip=~ka,
+    )
+
+
+def _fill_strips(
+    obs: NDArray[np.uint8],
+    s: _Strips,
+    use: NDArray[np.bool_],
+    pix: NDArray[np.float64],
+    value: int,
+    cv2,
+) -> None:
+    """Set the cells of ``obs`` covered by the triangles of ``s`` with ``use`` (corner pixels
+    ``pix``) to ``value``.
+
+    Each run of consecutive used triangles of a strip with the strip's orientation is one
+    polygon (near row out, far row back). cv2.fillPoly fills several polygons even-odd, so
+    polygons that overlap must not share a call: strips of odd and even rows (neighbours overlap
+    where noise folds two rows) go in separate calls, and a triangle turned over or flat goes on
+    its own.
+    """
+    used = np.flatnonzero(use)
+    if len(used) == 0:
+        return
+    shift = 4
+    scale = float(1 << shift)
+    tri = s.tri[used]
+    px, py = pix[:, 0], pix[:, 1]
+    x0, x1, x2 = px[tri[:, 0]], px[tri[:, 1]], px[tri[:, 2]]
+    y0, y1, y2 = py[tri[:, 0]], py[tri[:, 1]], py[tri[:, 2]]
+    with np.errstate(over="ignore", invalid="ignore"):
+        area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+    area2[s.flip[used]] *= -1.0
+    sign = 1.0 if float(np.sum(area2)) >= 0 else -1.0
+    ok = sign * area2 > 1e-9
+    single = ~ok
+    if np.any(single):
+        # Turned-over triangles, in four calls so that no two neighbours share one.
+        corners = np.column_stack([x0, y0, x1, y1, x2, y2])[single].reshape(-1, 3, 2)
+        polys = np.rint(corners * scale).astype(np.int32)
+        key = (s.strip[used][single] % 2) * 2 + used[single] % 2
+        for k in range(4):
+            if np.any(key == k):
+                cv2.fillPoly(obs, list(polys[key == k]), value, cv2.LINE_8, shift)
+    t = used[ok]
+    if len(t) == 0:
+        return
+    # A run breaks where the next good triangle is not the next triangle of the same strip.
+    cont = (np.diff(t) == 1) & (s.strip[t[1:]] == s.strip[t[:-1]])
+    first = t[np.concatenate([[True], ~cont])]
+    last = t[np.concatenate([~cont, [True]])]
+    a0, a1 = s.a_lo[first], s.a_hi[last]
+    b0, b1 = s.b_lo[first], s.b_hi[last]
+    len_a = a1 - a0 + 1
+    length = len_a + (b1 - b0 + 1)
+    ends = np.cumsum(length)
+    offset = np.arange(int(ends[-1])) - np.repeat(ends - length, length)
+    in_a = offset < np.repeat(len_a, length)
+    from_a = np.minimum(np.repeat(a0, length) + offset, len(s.a_chain) - 1)
+    from_b = np.clip(np.repeat(b1 + len_a, length) - offset, 0, len(s.b_chain) - 1)
+    idx = np.where(in_a, s.a_chain[from_a], s.b_chain[from_b])
+    runs = np.split(np.rint(pix[idx] * scale).astype(np.int32), ends[:-1])
+    odd = s.strip[first] % 2 == 1
+    for parity in (False, True):
+        group = [p for p, o in zip(runs, odd, strict=True) if o == parity]
+        if group:
+            cv2.fillPoly(obs, group, value, cv2.LINE_8, shift)
 
 
 def classified(cloud: PointCloud, classes: ArrayLike) -> PointCloud:
