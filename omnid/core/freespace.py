@@ -41,6 +41,7 @@ from omnid.core.types import PointClass, PointCloud
 _UNSEEN = 255  # observation layer: this update says nothing about the cell
 # Per-dot flags of the lattice fill (combined over a triangle's corners).
 _F_FLOOR, _F_OBSTACLE, _F_DROPOFF, _F_LOW, _F_INSIDE, _F_INSIDE_C = 1, 2, 4, 8, 16, 32
+_SHIFT = 4  # fractional bits of the fixed-point polygon corners given to cv2.fillPoly
 
 
 @dataclass(frozen=True)
@@ -230,23 +231,26 @@ class FreeSpaceMap:
             n_dots = len(xy)
             xy = np.vstack([xy, xy0])
             cls = np.concatenate([cls, np.full(len(xy0), PointClass.DROPOFF, np.uint8)])
-            obs, direct_free = self._observation(xy, cls, cv2, segments, xyz, low, n_dots)
+            obs, direct_free, (r0, c0) = self._observation(xy, cls, cv2, segments, xyz, low, n_dots)
+            # The observation covers only a window of the anchor grid (the cloud's bounding
+            # box); the memory rules below work on that window.
+            win = (slice(r0, r0 + obs.shape[0]), slice(c0, c0 + obs.shape[1]))
+            states = self._anchor.states[win]
             seen = obs != _UNSEEN
             # Free area filled in between floor dots is an interpolation: it must not erase a
             # remembered obstacle or drop-off (a thin post can fall between the dots of one
             # capture). Only a floor dot landing in the cell itself clears it.
-            held = (self._anchor.states == CellState.OBSTACLE) | (
-                self._anchor.states == CellState.DROPOFF
-            )
+            held = (states == CellState.OBSTACLE) | (states == CellState.DROPOFF)
             # It does clear it once ``clear_after_contradictions`` captures in a row have filled
             # it as free, so a phantom or removed obstacle between dot columns cannot stay forever.
             contradicted = held & (obs == CellState.FREE) & ~direct_free
-            self._contradictions[contradicted] += 1
-            self._contradictions[~contradicted] = 0
-            keep = contradicted & (self._contradictions < st.clear_after_contradictions)
+            counts = np.where(contradicted, self._contradictions[win] + 1, 0).astype(np.uint8)
+            self._contradictions.fill(0)  # outside the window nothing is contradicted
+            self._contradictions[win] = counts
+            keep = contradicted & (counts < st.clear_after_contradictions)
             seen &= ~keep
-            self._anchor.states[seen] = obs[seen].astype(np.int8)
-            self._seen_s[seen] = self._now_s
+            states[seen] = obs[seen].astype(np.int8)
+            self._seen_s[win][seen] = self._now_s
         if st.forget_after_s > 0 and now_s is not None:
             stale = (self._now_s - self._seen_s) > st.forget_after_s
             self._anchor.states[stale] = CellState.UNKNOWN
@@ -270,9 +274,10 @@ class FreeSpaceMap:
         xyz: NDArray[np.float64],
         low: NDArray[np.bool_],
         n_dots: int,
-    ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
-        """The cells one cloud speaks about: uint8 CellState values, _UNSEEN elsewhere; and the
-        mask of cells FREE because a floor dot lies in them (not by filling between dots).
+    ) -> tuple[NDArray[np.uint8], NDArray[np.bool_], tuple[int, int]]:
+        """The cells one cloud speaks about, in a window of the anchor grid around the cloud:
+        uint8 CellState values, _UNSEEN elsewhere; the mask of cells FREE because a floor dot
+        lies in them (not by filling between dots); and the window's first (row, column).
 
         ``xy`` (N, 2): anchor-frame positions of the ``n_dots`` dots (rig positions ``xyz``,
         ``low``: lowered drop-off dots), followed by the floor-level crossings of the lowered
@@ -280,9 +285,25 @@ class FreeSpaceMap:
         floor is known to be missing (a lowered dot's ray from its crossing to the dot).
         """
         st = self.settings
-        shape = self._anchor.states.shape
-        obs = np.full(shape, _UNSEEN, dtype=np.uint8)
+        radius = math.ceil(st.obstacle_inflation_mm / self._anchor_settings.resolution_mm)
         pix = self._pixels(xy)
+        # The window: the points' bounding box (it holds every triangle and ray segment between
+        # them), grown by the inflation radius, clipped to the grid.
+        rows, cols = self._anchor.states.shape
+        pad = radius + 2
+        if len(pix):
+            lo = np.floor(pix.min(axis=0)) - pad
+            hi = np.ceil(pix.max(axis=0)) + pad + 1
+        else:
+            lo = hi = np.zeros(2)
+        c0, c1 = (int(np.clip(v, 0, cols)) for v in (lo[0], hi[0]))
+        r0, r1 = (int(np.clip(v, 0, rows)) for v in (lo[1], hi[1]))
+        shape = (max(r1 - r0, 0), max(c1 - c0, 0))
+        obs = np.full(shape, _UNSEEN, dtype=np.uint8)
+        if obs.size == 0:
+            return obs, np.zeros(shape, dtype=bool), (r0, c0)
+        offset = np.array([c0, r0], dtype=np.float64)
+        pix = pix - offset
         inside = (
             (pix[:, 0] > -1) & (pix[:, 0] < shape[1]) & (pix[:, 1] > -1) & (pix[:, 1] < shape[0])
         )
@@ -307,10 +328,9 @@ class FreeSpaceMap:
             k = max(2, math.ceil(float(np.linalg.norm(seg, axis=1).max()) / (0.5 * res)) + 1)
             t = np.linspace(0.0, 1.0, k)
             along = missing_floor[:, None, 0, :] + t[None, :, None] * seg[:, None, :]
-            c = np.floor(self._pixels(along.reshape(-1, 2)) + 0.5).astype(np.intp)
+            c = np.floor(self._pixels(along.reshape(-1, 2)) - offset + 0.5).astype(np.intp)
             ok = (c[:, 0] >= 0) & (c[:, 0] < shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < shape[0])
             obs[c[ok, 1], c[ok, 0]] = int(CellState.DROPOFF)
-        radius = math.ceil(st.obstacle_inflation_mm / self._anchor_settings.resolution_mm)
         for mask_pts, state in (
             (valid & dropoff, CellState.DROPOFF),
             (valid & obstacle, CellState.OBSTACLE),
@@ -325,7 +345,7 @@ class FreeSpaceMap:
                 )
                 layer = cv2.dilate(layer, kernel)
             obs[layer > 0] = int(state)
-        return obs, direct_free & (obs == CellState.FREE)
+        return obs, direct_free & (obs == CellState.FREE), (r0, c0)
 
     def _fill_lattice(
         self,
@@ -373,21 +393,29 @@ class FreeSpaceMap:
         near = (every & _F_INSIDE) > 0
         edges = _longest_edge(xy, t0, t1, t2)
         free_t = near & ((every & _F_FLOOR) > 0) & (edges <= st.free_max_edge_mm)
-        _fill_strips(obs, strips, free_t, pix, int(CellState.FREE), cv2)
         no_obst = (some & _F_OBSTACLE) == 0
         drop_t = near & ((some & _F_DROPOFF) > 0) & no_obst & (edges <= st.dropoff_max_edge_mm)
-        _fill_strips(obs, strips, drop_t, pix, int(CellState.DROPOFF), cv2)
-        if len(where_low):
-            # Lowered dots stand in at their floor-level crossings in a second drop-off fill.
-            xy_c = xy[:n_dots].copy()
-            xy_c[where_low] = xy[n_dots : n_dots + len(where_low)]
-            pix_c = pix[:n_dots].copy()
-            pix_c[where_low] = pix[n_dots : n_dots + len(where_low)]
-            drop_c = ((every & _F_INSIDE_C) > 0) & ((some & _F_LOW) > 0) & no_obst
-            drop_c &= _longest_edge(xy_c, t0, t1, t2) <= st.dropoff_max_edge_mm
-            _fill_strips(obs, strips, drop_c, pix_c, int(CellState.DROPOFF), cv2)
         obst_t = near & ((every & _F_OBSTACLE) > 0) & (edges <= st.obstacle_max_edge_mm)
-        _fill_strips(obs, strips, obst_t, pix, int(CellState.OBSTACLE), cv2)
+        value = np.zeros(len(t0), dtype=np.uint8)  # the three kinds exclude each other
+        value[free_t] = CellState.FREE
+        value[drop_t] = CellState.DROPOFF
+        value[obst_t] = CellState.OBSTACLE
+        free, drop, obst = int(CellState.FREE), int(CellState.DROPOFF), int(CellState.OBSTACLE)
+        fixed = _fixed_point(pix)
+        if len(where_low) == 0:
+            _fill_strips(obs, strips, value, pix, fixed, (free, drop, obst), cv2)
+            return True
+        _fill_strips(obs, strips, value, pix, fixed, (free, drop), cv2)
+        # Lowered dots stand in at their floor-level crossings in a second drop-off fill.
+        xy_c = xy[:n_dots].copy()
+        xy_c[where_low] = xy[n_dots : n_dots + len(where_low)]
+        pix_c = pix[:n_dots].copy()
+        pix_c[where_low] = pix[n_dots : n_dots + len(where_low)]
+        drop_c = ((every & _F_INSIDE_C) > 0) & ((some & _F_LOW) > 0) & no_obst
+        drop_c &= _longest_edge(xy_c, t0, t1, t2) <= st.dropoff_max_edge_mm
+        fixed_c = _fixed_point(pix_c)
+        _fill_strips(obs, strips, drop_c * np.uint8(drop), pix_c, fixed_c, (drop,), cv2)
+        _fill_strips(obs, strips, (value == obst) * np.uint8(obst), pix, fixed, (obst,), cv2)
         return True
 
     def _fill_delaunay(
@@ -405,15 +433,13 @@ class FreeSpaceMap:
         tri = _delaunay(xy[inside]) if inside.sum() >= 3 else np.zeros((0, 3), dtype=np.intp)
         if len(tri) == 0:
             return
-        shift = 4
-        scale = float(1 << shift)
         idx = np.flatnonzero(inside)[tri]  # (T, 3) indices into xy
         edges = _longest_edge(xy, idx[:, 0], idx[:, 1], idx[:, 2])
         tcls = cls[idx]
         all_floor = np.all(tcls == PointClass.FLOOR, axis=1)
         any_drop = np.any(tcls == PointClass.DROPOFF, axis=1)
         any_obst = np.any(tcls == PointClass.OBSTACLE, axis=1)
-        polys = np.rint(pix[idx] * scale).astype(np.int32)  # (T, 3, 2)
+        polys = _fixed_point(pix)[idx]  # (T, 3, 2)
         free_t = all_floor & (edges <= st.free_max_edge_mm)
         drop_t = any_drop & ~any_obst & (edges <= st.dropoff_max_edge_mm)
         obst_t = np.all(tcls == PointClass.OBSTACLE, axis=1) & (edges <= st.obstacle_max_edge_mm)
@@ -423,7 +449,7 @@ class FreeSpaceMap:
             (obst_t, CellState.OBSTACLE),
         ):
             if np.any(use):
-                cv2.fillPoly(obs, list(polys[use]), int(state), cv2.LINE_8, shift)
+                cv2.fillPoly(obs, list(polys[use]), int(state), cv2.LINE_8, _SHIFT)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -524,6 +550,13 @@ class FreeSpaceMap:
         Path(path).write_bytes(buf.tobytes())
 
 
+def _fixed_point(pix: NDArray[np.float64]) -> NDArray[np.int32]:
+    """Pixel coordinates (N, 2) → cv2 fixed point with :data:`_SHIFT` fractional bits (clipped
+    far outside any grid, so that nothing overflows)."""
+    limit = float(1 << (30 - _SHIFT))
+    return np.rint(np.clip(pix, -limit, limit) * (1 << _SHIFT)).astype(np.int32)
+
+
 def _longest_edge(
     xy: NDArray[np.float64], t0: NDArray[np.intp], t1: NDArray[np.intp], t2: NDArray[np.intp]
 ) -> NDArray[np.float64]:
@@ -608,8 +641,8 @@ class _Strips:
     b_lo, b_hi (T,) likewise in ``b_chain`` for the far row
     a_chain    point indices of every strip's near row in order along the row, strip after strip
     b_chain    likewise for the far rows
-    flip       (T,) True where the triangle's second edge runs along the far row, which turns its
-               corner order the other way round than the near-row ones
+    flip       (T,) −1.0 where the triangle's second edge runs along the far row, which turns
+               its corner order the other way round than the near-row ones, else 1.0
     """
 
     tri: NDArray[np.intp]
@@ -620,7 +653,7 @@ class _Strips:
     b_hi: NDArray[np.intp]
     a_chain: NDArray[np.intp]
     b_chain: NDArray[np.intp]
-    flip: NDArray[np.bool_]
+    flip: NDArray[np.float64]
 
 
 def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips | None:
@@ -648,17 +681,21 @@ def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips |
     strip = np.concatenate([row[near], row[far] - 1])
     tag = np.concatenate([np.zeros(len(near), np.int8), np.ones(len(far), np.int8)])
     pt = np.concatenate([near, far])
-    o = np.lexsort((tag, v[pt], strip))
+    vv = v[pt]
+    lo, span = float(vv.min()), float(vv.max() - vv.min()) + 1.0
+    o = np.argsort(strip * span + (vv - lo), kind="stable")  # near-row dot first on a tie
     strip, tag, pt = strip[o], tag[o], pt[o]
     m = len(pt)
     pos = np.arange(m)
     is_a = tag == 0
-    start = np.searchsorted(strip, strip, side="left")  # first element of each one's strip
+    start = np.searchsorted(strip, np.arange(rows - 1))[strip]  # first element of the strip
     last_a = np.maximum.accumulate(np.where(is_a, pos, -1))
     last_b = np.maximum.accumulate(np.where(is_a, -1, pos))
     a_pos, b_pos = pos[is_a], pos[~is_a]
-    first_a = a_pos[np.searchsorted(strip[is_a], strip)]  # every strip has dots of both rows
-    first_b = b_pos[np.searchsorted(strip[~is_a], strip)]
+    # First near-row and far-row element of each strip (every strip has dots of both rows).
+    a_strip, b_strip = strip[is_a], strip[~is_a]
+    first_a = a_pos[np.concatenate([[True], a_strip[1:] != a_strip[:-1]])][strip]
+    first_b = b_pos[np.concatenate([[True], b_strip[1:] != b_strip[:-1]])][strip]
     cur_a = np.where(last_a >= start, last_a, first_a)
     cur_b = np.where(last_b >= start, last_b, first_b)
     prev_a = np.concatenate([[-1], last_a[:-1]])
@@ -685,73 +722,85 @@ def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips |
         b_hi=rank_b[right_b],
         a_chain=pt[a_pos],
         b_chain=pt[b_pos],
-        flip=~ka,
+        flip=np.where(ka, 1.0, -1.0),
     )
 
 
 def _fill_strips(
     obs: NDArray[np.uint8],
     s: _Strips,
-    use: NDArray[np.bool_],
+    value: NDArray[np.uint8],
     pix: NDArray[np.float64],
-    value: int,
+    fixed: NDArray[np.int32],
+    paint: tuple[int, ...],
     cv2,
 ) -> None:
-    """Set the cells of ``obs`` covered by the triangles of ``s`` with ``use`` (corner pixels
-    ``pix``) to ``value``.
+    """Paint the triangles of ``s`` (corner pixels ``pix``, and the same in fixed point with
+    :data:`_SHIFT` fractional bits, ``fixed``) into ``obs``: each with its ``value`` (T,)
+    (0: not painted), the values in the order ``paint`` (a later one wins).
 
-    Each run of consecutive used triangles of a strip with the strip's orientation is one
+    Each run of consecutive triangles of one value in a strip, turned the strip's way, is one
     polygon (near row out, far row back). cv2.fillPoly fills several polygons even-odd, so
-    polygons that overlap must not share a call: strips of odd and even rows (neighbours overlap
+    polygons that overlap must not share a call: runs of odd and even strips (neighbours overlap
     where noise folds two rows) go in separate calls, and a triangle turned over or flat goes on
     its own.
     """
-    used = np.flatnonzero(use)
+    used = np.flatnonzero(value)
     if len(used) == 0:
         return
-    shift = 4
-    scale = float(1 << shift)
-    tri = s.tri[used]
+    t0, t1, t2 = s.tri[:, 0][used], s.tri[:, 1][used], s.tri[:, 2][used]
     px, py = pix[:, 0], pix[:, 1]
-    x0, x1, x2 = px[tri[:, 0]], px[tri[:, 1]], px[tri[:, 2]]
-    y0, y1, y2 = py[tri[:, 0]], py[tri[:, 1]], py[tri[:, 2]]
+    x0, x1, x2 = px[t0], px[t1], px[t2]
+    y0, y1, y2 = py[t0], py[t1], py[t2]
     with np.errstate(over="ignore", invalid="ignore"):
-        area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
-    area2[s.flip[used]] *= -1.0
+        area2 = ((x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)) * s.flip[used]
     sign = 1.0 if float(np.sum(area2)) >= 0 else -1.0
     ok = sign * area2 > 1e-9
-    single = ~ok
-    if np.any(single):
-        # Turned-over triangles, in four calls so that no two neighbours share one.
-        corners = np.column_stack([x0, y0, x1, y1, x2, y2])[single].reshape(-1, 3, 2)
-        polys = np.rint(corners * scale).astype(np.int32)
-        key = (s.strip[used][single] % 2) * 2 + used[single] % 2
-        for k in range(4):
-            if np.any(key == k):
-                cv2.fillPoly(obs, list(polys[key == k]), value, cv2.LINE_8, shift)
+    # Turned-over triangles: by value, and in four calls so that no two neighbours share one.
+    single = np.flatnonzero(~ok)
+    single_polys = np.stack([fixed[t0[single]], fixed[t1[single]], fixed[t2[single]]], axis=1)
+    single_group = (
+        value[used[single]].astype(np.intp) * 4 + (s.strip[used[single]] % 2) * 2 + single % 2
+    )
+    by_group = np.argsort(single_group, kind="stable")
+    single_polys, single_group = single_polys[by_group], single_group[by_group]
     t = used[ok]
-    if len(t) == 0:
-        return
-    # A run breaks where the next good triangle is not the next triangle of the same strip.
-    cont = (np.diff(t) == 1) & (s.strip[t[1:]] == s.strip[t[:-1]])
-    first = t[np.concatenate([[True], ~cont])]
-    last = t[np.concatenate([~cont, [True]])]
-    a0, a1 = s.a_lo[first], s.a_hi[last]
-    b0, b1 = s.b_lo[first], s.b_hi[last]
-    len_a = a1 - a0 + 1
-    length = len_a + (b1 - b0 + 1)
-    ends = np.cumsum(length)
-    offset = np.arange(int(ends[-1])) - np.repeat(ends - length, length)
-    in_a = offset < np.repeat(len_a, length)
-    from_a = np.minimum(np.repeat(a0, length) + offset, len(s.a_chain) - 1)
-    from_b = np.clip(np.repeat(b1 + len_a, length) - offset, 0, len(s.b_chain) - 1)
-    idx = np.where(in_a, s.a_chain[from_a], s.b_chain[from_b])
-    runs = np.split(np.rint(pix[idx] * scale).astype(np.int32), ends[:-1])
-    odd = s.strip[first] % 2 == 1
-    for parity in (False, True):
-        group = [p for p, o in zip(runs, odd, strict=True) if o == parity]
-        if group:
-            cv2.fillPoly(obs, group, value, cv2.LINE_8, shift)
+    runs: list[NDArray[np.int32]] = []
+    group = np.zeros(0, dtype=np.intp)
+    if len(t):
+        # A run breaks where the next good triangle is not the next one of the strip, or differs.
+        tv = value[t]
+        cont = (np.diff(t) == 1) & (s.strip[t[1:]] == s.strip[t[:-1]]) & (tv[1:] == tv[:-1])
+        first = t[np.concatenate([[True], ~cont])]
+        last = t[np.concatenate([~cont, [True]])]
+        # Group the runs by value and strip parity: one fillPoly call per group.
+        group = value[first].astype(np.intp) * 2 + s.strip[first] % 2
+        by_group = np.argsort(group, kind="stable")
+        first, last, group = first[by_group], last[by_group], group[by_group]
+        a0, a1 = s.a_lo[first], s.a_hi[last]
+        b0, b1 = s.b_lo[first], s.b_hi[last]
+        len_a = a1 - a0 + 1
+        length = len_a + (b1 - b0 + 1)
+        ends = np.cumsum(length)
+        starts = ends - length
+        offset = np.arange(int(ends[-1]) if len(ends) else 0) - np.repeat(starts, length)
+        in_a = offset < np.repeat(len_a, length)
+        from_a = np.minimum(np.repeat(a0, length) + offset, len(s.a_chain) - 1)
+        from_b = np.clip(np.repeat(b1 + len_a, length) - offset, 0, len(s.b_chain) - 1)
+        idx = np.where(in_a, s.a_chain[from_a], s.b_chain[from_b])
+        flat = fixed[idx]
+        runs = [flat[i:j] for i, j in zip(starts.tolist(), ends.tolist(), strict=True)]
+    top = 4 * max(paint) + 5
+    bounds = np.searchsorted(group, np.arange(top)).tolist()
+    single_bounds = np.searchsorted(single_group, np.arange(top)).tolist()
+    for v in paint:
+        for g in (2 * v, 2 * v + 1):
+            if bounds[g + 1] > bounds[g]:
+                cv2.fillPoly(obs, runs[bounds[g] : bounds[g + 1]], v, cv2.LINE_8, _SHIFT)
+        for g in range(4 * v, 4 * v + 4):
+            if single_bounds[g + 1] > single_bounds[g]:
+                polys = list(single_polys[single_bounds[g] : single_bounds[g + 1]])
+                cv2.fillPoly(obs, polys, v, cv2.LINE_8, _SHIFT)
 
 
 def classified(cloud: PointCloud, classes: ArrayLike) -> PointCloud:
