@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from omnid.core.classify import with_classes
-from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings, classified
+from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings, _lattice_strips, classified
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.occupancy import CellState, GridSettings
@@ -309,3 +309,87 @@ def test_driving_and_turning_through_a_scene_keeps_obstacles_where_they_are_in_t
         near_box |= on
         assert on.sum() >= 2, f"box {b} forgotten"
     assert np.mean(near_box) >= 0.97
+
+
+# -- the lattice strips (the fast path of update) ---------------------------------------------
+
+
+def _cross(a, b):
+    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+
+def _lattice(rows: int, cols: int, step: float = 0.1, noise: float = 0.0, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(0.3 + step * np.arange(rows), step * (np.arange(cols) - cols / 2))
+    u, v = u.ravel(), v.ravel()
+    return u + rng.normal(0, noise, u.shape), v + rng.normal(0, noise, v.shape)
+
+
+def test_lattice_strips_stitch_adjacent_rows_into_half_cells():
+    u, v = _lattice(6, 9, noise=0.002)
+    perm = np.random.default_rng(1).permutation(len(u))  # input order does not matter
+    s = _lattice_strips(u[perm], v[perm])
+    assert s is not None
+    tri = perm[s.tri]  # back to lattice indices: row = index // 9 ... careful, meshgrid order
+    r, c = tri % 6, tri // 6  # meshgrid(u-rows, v-cols) ravel: index = col·rows + row
+    assert len(tri) == 2 * (6 - 1) * (9 - 1)
+    # Every triangle spans two adjacent rows and two adjacent columns: a half lattice cell.
+    assert np.all(r.max(axis=1) - r.min(axis=1) == 1)
+    assert np.all(c.max(axis=1) - c.min(axis=1) == 1)
+    # Together they cover the lattice once: the areas add up to its hull.
+    p = np.column_stack([u, v])[tri]
+    area = 0.5 * np.abs(_cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
+    assert area.sum() == pytest.approx(0.1 * 5 * 0.1 * 8, rel=0.02)
+
+
+def test_lattice_rows_survive_a_missing_row_and_an_outlier_but_not_a_random_cloud():
+    u, v = _lattice(8, 7, noise=0.002)
+    keep = ~np.isclose(u, 0.3 + 0.1 * 3, atol=0.02)  # row 3 occluded
+    u, v = np.append(u[keep], 2.5), np.append(v[keep], 0.0)  # a stray dot far ahead
+    s = _lattice_strips(u, v)
+    assert s is not None and s.strip.max() + 1 == 7  # 7 rows + the outlier: 7 strips
+    rng = np.random.default_rng(3)
+    assert _lattice_strips(rng.uniform(0, 2, 200), rng.uniform(-1, 1, 200)) is None
+
+
+def test_folded_rows_leave_no_holes_in_the_free_area():
+    # Far floor dots with large depth noise: neighbouring rows cross over each other in the
+    # plane. Overlapping strip polygons must not cancel out (cv2 fills even-odd).
+    rng = np.random.default_rng(5)
+    u, v = _lattice(16, 21, step=0.08)
+    z = 1100.0 + rng.normal(0, 25.0, u.shape)  # rows 88 mm apart, x noise σ = 25 mm·u
+    xyz = np.column_stack([u * z, v * z, z])
+    n = len(xyz)
+    s = _lattice_strips(u, v)
+    assert s is not None
+    p = xyz[:, :2][s.tri]
+    turned = _cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]) * s.flip
+    assert np.sum(turned > 0) >= 10 and np.sum(turned < 0) >= 10 * np.sum(turned > 0)
+    cloud = PointCloud(xyz, np.zeros((n, 3, 3)), np.zeros((n, 4)), np.zeros(n, np.uint8))
+    m = fresh()
+    m.update(cloud, 0.0)
+    xs, ys = np.meshgrid(np.arange(600.0, 1400.0, 25.0), np.arange(-500.0, 500.0, 25.0))
+    states = m.state_at(np.column_stack([xs.ravel(), ys.ravel()]))
+    assert np.all(states == CellState.FREE)
+
+
+def test_lattice_fill_agrees_with_a_delaunay_fill_of_the_same_dots():
+    sc = scenes.three_boxes(MOUNT)
+    cloud = scene_cloud(sc, seed=4)
+    lattice = fresh()
+    lattice.update(cloud, MOUNT.x_offset_mm)
+    # The same dots with their rays scrambled (no lattice rows any more) take the Delaunay path;
+    # positions in the plane are unchanged, so the maps must nearly agree.
+    rng = np.random.default_rng(0)
+    scale = rng.uniform(0.9, 1.1, len(cloud))[:, None]
+    xyz = cloud.xyz.copy()
+    xyz[:, 2] = cloud.xyz[:, 2] * scale[:, 0]  # Z scrambled: breaks X/Z rows
+    scrambled = PointCloud(xyz, cloud.cov, cloud.pixels, cloud.classes, cloud.floor_depth_mm)
+    assert _lattice_strips(xyz[:, 0] / xyz[:, 2], xyz[:, 1] / xyz[:, 2]) is None
+    general = fresh()
+    general.update(scrambled, MOUNT.x_offset_mm)
+    a, b = lattice.grid.states, general.grid.states
+    seen = (a != CellState.UNKNOWN) | (b != CellState.UNKNOWN)
+    assert np.mean(a[seen] == b[seen]) > 0.95
+    for state in (CellState.OBSTACLE, CellState.FREE):
+        assert np.sum((a == state) & (b == state)) > 0.9 * np.sum(b == state)
