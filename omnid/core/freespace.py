@@ -5,16 +5,23 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
 — out of the laser's forward field — still blocks it:
 
 - ``update`` rasterises one classified cloud. Free area is not just the cells under floor dots:
-  the dots are joined by a Delaunay triangulation (``cv2.Subdiv2D``), and every triangle whose
-  three corners are floor dots, with no edge longer than ``free_max_edge_mm``, is floor the laser
-  has swept — FREE. A triangle with a drop-off corner (and no obstacle corner) spans the place
-  where the floor goes missing: dots beyond an edge fall lower and land farther, so between the
-  last floor dot and the first lowered one lies floor that was never seen — it is marked DROPOFF,
-  never free. Stronger still, a lowered dot's laser ray crossed floor level somewhere nearer
-  without meeting floor: the cells along the ray from that crossing to the dot are DROPOFF,
-  however deep the drop (7.2.2 extended to missing floor). Obstacle dots, and triangles of
-  neighbouring obstacle dots (a box top), mark OBSTACLE (dots optionally inflated). Cells this
-  cloud does not cover keep what they had.
+  neighbouring dots are joined into triangles, and every triangle whose three corners are floor
+  dots, with no edge longer than ``free_max_edge_mm``, is floor the laser has swept — FREE. A
+  triangle with a drop-off corner (and no obstacle corner) spans the place where the floor goes
+  missing: dots beyond an edge fall lower and land farther, so between the last floor dot and the
+  first lowered one lies floor that was never seen — it is marked DROPOFF, never free (filled
+  twice: with the lowered dots where they landed, and where their rays crossed floor level).
+  Stronger still, a lowered dot's laser ray crossed floor level somewhere nearer without meeting
+  floor: the cells along the ray from that crossing to the dot are DROPOFF, however deep the drop
+  (7.2.2 extended to missing floor). Obstacle dots, and triangles of neighbouring obstacle dots
+  (a box top), mark OBSTACLE (dots optionally inflated). Cells this cloud does not cover keep
+  what they had.
+- Triangles come from the laser lattice (``neighbours="lattice"``): the source sits at the rig
+  origin, so a dot's slopes (X/Z, Y/Z) name its ray whatever it hit, and the dots fall into rows
+  of the projector's lattice; adjacent rows are stitched into triangle strips, and each run of
+  strip triangles of one kind is filled as one polygon. That replaced a Delaunay triangulation
+  (``cv2.Subdiv2D``) and one polygon per triangle, 5–10x the cost; Delaunay remains for clouds
+  without lattice rows and as ``neighbours="delaunay"``.
 - ``move`` applies the robot's motion. The map is stored in an *anchor* frame (the robot frame
   at some earlier pose) together with the current robot pose in it; a move only updates that
   pose, and the grid is resampled (``cv2.warpAffine``, nearest neighbour) only when the chair has
@@ -60,6 +67,9 @@ class FreeSpaceSettings:
     forget_after_s         remembered cells not seen again for this long become UNKNOWN
                            (0: never forget); needs ``now_s`` in :meth:`FreeSpaceMap.update`
     reanchor_distance_mm   travel from the anchor pose before the stored grid is resampled
+    neighbours             how dots are joined into triangles: "lattice" (strips between the
+                           rows of the laser lattice, found from the dots' ray slopes; clouds
+                           without rows fall back to Delaunay) or "delaunay" (always)
     """
 
     grid: GridSettings = field(default_factory=GridSettings)
@@ -70,6 +80,7 @@ class FreeSpaceSettings:
     forget_after_s: float = 0.0
     clear_after_contradictions: int = 3
     reanchor_distance_mm: float = 1000.0
+    neighbours: str = "lattice"
 
     def __post_init__(self) -> None:
         for key in (
@@ -84,6 +95,11 @@ class FreeSpaceSettings:
             require(math.isfinite(value) and value >= 0, key, "must be a finite number ≥ 0")
         require(self.free_max_edge_mm > 0, "free_max_edge_mm", "must be positive")
         require(self.clear_after_contradictions >= 1, "clear_after_contradictions", "must be ≥ 1")
+        require(
+            self.neighbours in ("lattice", "delaunay"),
+            "neighbours",
+            f"must be 'lattice' or 'delaunay', not {self.neighbours!r}",
+        )
 
 
 def _affine(
@@ -310,7 +326,8 @@ class FreeSpaceMap:
         floor = cls == PointClass.FLOOR
         obstacle = cls == PointClass.OBSTACLE
         dropoff = cls == PointClass.DROPOFF
-        if not self._fill_lattice(obs, xy, cls, pix, inside, xyz, low, n_dots, cv2):
+        lattice = st.neighbours == "lattice"
+        if not (lattice and self._fill_lattice(obs, xy, cls, pix, inside, xyz, low, n_dots, cv2)):
             self._fill_delaunay(obs, xy, cls, pix, inside, cv2)
 
         cells = np.floor(pix + 0.5).astype(np.intp)  # the cell containing the point
