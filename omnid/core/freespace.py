@@ -48,6 +48,7 @@ from omnid.core.types import PointClass, PointCloud
 _UNSEEN = 255  # observation layer: this update says nothing about the cell
 # Per-dot flags of the lattice fill (combined over a triangle's corners).
 _F_FLOOR, _F_OBSTACLE, _F_DROPOFF, _F_LOW, _F_INSIDE, _F_INSIDE_C = 1, 2, 4, 8, 16, 32
+_FAR_MM = 1e9  # points farther than this (or not finite) are ignored
 _SHIFT = 4  # fractional bits of the fixed-point polygon corners given to cv2.fillPoly
 
 
@@ -151,6 +152,7 @@ class FreeSpaceMap:
         self._pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  # robot in the anchor frame
         self._now_s = 0.0
         self._grid: OccupancyGrid | None = None
+        self._strips: _Strips | None = None  # the last capture's lattice strips
 
     # -- motion -------------------------------------------------------------------------------
 
@@ -231,11 +233,13 @@ class FreeSpaceMap:
         st = self.settings
         if len(cloud):
             xy = _to_frame(self._pose, rig_to_robot(cloud.xyz, rig_x_offset_mm))
-            ok = np.all(np.isfinite(xy), axis=1)
-            xy, cls = xy[ok], cloud.classes[ok]
+            # Finite and within 1000 km (NaN compares False): no overflow in any distance below.
+            ok = (np.abs(xy[:, 0]) < _FAR_MM) & (np.abs(xy[:, 1]) < _FAR_MM)
+            xyz, cls = cloud.xyz, cloud.classes
+            if not ok.all():
+                xy, cls, xyz = xy[ok], cls[ok], xyz[ok]
             # A ray that ended below the floor passed floor level at P·H/Z without meeting any
             # floor there: the floor is missing all along its path from that crossing to the dot.
-            xyz = cloud.xyz[ok]
             H = cloud.floor_depth_mm
             low = (cls == PointClass.DROPOFF) & (xyz[:, 2] > H)
             crossing = xyz[low] * (H / xyz[low, 2])[:, None]
@@ -308,8 +312,8 @@ class FreeSpaceMap:
         rows, cols = self._anchor.states.shape
         pad = radius + 2
         if len(pix):
-            lo = np.floor(pix.min(axis=0)) - pad
-            hi = np.ceil(pix.max(axis=0)) + pad + 1
+            lo = np.floor([pix[:, 0].min(), pix[:, 1].min()]) - pad
+            hi = np.ceil([pix[:, 0].max(), pix[:, 1].max()]) + pad + 1
         else:
             lo = hi = np.zeros(2)
         c0, c1 = (int(np.clip(v, 0, cols)) for v in (lo[0], hi[0]))
@@ -379,18 +383,25 @@ class FreeSpaceMap:
         """Fill the triangles between the dots from the laser lattice's strips (see
         :func:`_lattice_strips`); False, touching nothing, when the dots show no lattice rows."""
         st = self.settings
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ray = np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 1e-9)
+        ray = (xyz[:, 2] > 1e-9) & (xyz[:, 2] < _FAR_MM)  # NaN compares False
         sel = np.flatnonzero(ray)
         if len(sel) < 4:
             return False
         z = xyz[sel, 2]
-        strips = _lattice_strips(xyz[sel, 0] / z, xyz[sel, 1] / z)
+        u, v = xyz[sel, 0] / z, xyz[sel, 1] / z
+        # The lattice changes little from capture to capture: the last strips usually still fit.
+        strips = self._strips
+        if strips is None or not strips.fits(u, v):
+            strips = self._strips = _lattice_strips(u, v)
         if strips is None:
             return False
-        strips = replace(
-            strips, tri=sel[strips.tri], a_chain=sel[strips.a_chain], b_chain=sel[strips.b_chain]
-        )
+        if len(sel) < len(xyz):
+            strips = replace(
+                strips,
+                tri=sel[strips.tri],
+                a_chain=sel[strips.a_chain],
+                b_chain=sel[strips.b_chain],
+            )
         # Per-dot flags, combined over each triangle's corners with one AND and one OR.
         where_low = np.flatnonzero(low)
         inside_c = inside[:n_dots].copy()
@@ -581,11 +592,10 @@ def _longest_edge(
     into points ``xy`` (N, 2))."""
     x, y = xy[:, 0], xy[:, 1]
     x0, x1, x2, y0, y1, y2 = x[t0], x[t1], x[t2], y[t0], y[t1], y[t2]
-    with np.errstate(over="ignore", invalid="ignore"):
-        d01 = (x1 - x0) ** 2 + (y1 - y0) ** 2
-        d12 = (x2 - x1) ** 2 + (y2 - y1) ** 2
-        d20 = (x0 - x2) ** 2 + (y0 - y2) ** 2
-        return np.sqrt(np.maximum(np.maximum(d01, d12), d20))
+    d01 = (x1 - x0) ** 2 + (y1 - y0) ** 2
+    d12 = (x2 - x1) ** 2 + (y2 - y1) ** 2
+    d20 = (x0 - x2) ** 2 + (y0 - y2) ** 2
+    return np.sqrt(np.maximum(np.maximum(d01, d12), d20))
 
 
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
@@ -671,6 +681,27 @@ class _Strips:
     a_chain: NDArray[np.intp]
     b_chain: NDArray[np.intp]
     flip: NDArray[np.float64]
+    row_order: NDArray[np.intp]
+    row_starts: NDArray[np.intp]
+    a_same: NDArray[np.bool_]
+    b_same: NDArray[np.bool_]
+
+    def fits(self, u: NDArray[np.float64], v: NDArray[np.float64]) -> bool:
+        """Whether these strips still triangulate dots at slopes ``u``, ``v`` (as many as they
+        were built for): every row still lies apart from the next one by more than a row's own
+        spread, and every row is still in order along v. Then the strips are a valid
+        triangulation of the new dots whichever rays they are — no need to build them again.
+        """
+        if len(u) != len(self.row_order):
+            return False
+        if np.any(np.diff(v[self.a_chain])[self.a_same] <= 0):
+            return False
+        if np.any(np.diff(v[self.b_chain])[self.b_same] <= 0):
+            return False
+        us = u[self.row_order]
+        lo = np.minimum.reduceat(us, self.row_starts)
+        hi = np.maximum.reduceat(us, self.row_starts)
+        return bool(np.all(lo[1:] - hi[:-1] > np.max(hi - lo)))
 
 
 def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips | None:
@@ -708,9 +739,9 @@ def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips |
     start = np.searchsorted(strip, np.arange(rows - 1))[strip]  # first element of the strip
     last_a = np.maximum.accumulate(np.where(is_a, pos, -1))
     last_b = np.maximum.accumulate(np.where(is_a, -1, pos))
-    a_pos, b_pos = pos[is_a], pos[~is_a]
+    a_pos, b_pos = np.flatnonzero(is_a), np.flatnonzero(~is_a)
     # First near-row and far-row element of each strip (every strip has dots of both rows).
-    a_strip, b_strip = strip[is_a], strip[~is_a]
+    a_strip, b_strip = strip[a_pos], strip[b_pos]
     first_a = a_pos[np.concatenate([[True], a_strip[1:] != a_strip[:-1]])][strip]
     first_b = b_pos[np.concatenate([[True], b_strip[1:] != b_strip[:-1]])][strip]
     cur_a = np.where(last_a >= start, last_a, first_a)
@@ -740,6 +771,10 @@ def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips |
         a_chain=pt[a_pos],
         b_chain=pt[b_pos],
         flip=np.where(ka, 1.0, -1.0),
+        row_order=order,
+        row_starts=np.flatnonzero(np.concatenate([[True], breaks])),
+        a_same=a_strip[1:] == a_strip[:-1],
+        b_same=b_strip[1:] == b_strip[:-1],
     )
 
 
@@ -769,8 +804,7 @@ def _fill_strips(
     px, py = pix[:, 0], pix[:, 1]
     x0, x1, x2 = px[t0], px[t1], px[t2]
     y0, y1, y2 = py[t0], py[t1], py[t2]
-    with np.errstate(over="ignore", invalid="ignore"):
-        area2 = ((x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)) * s.flip[used]
+    area2 = ((x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)) * s.flip[used]
     sign = 1.0 if float(np.sum(area2)) >= 0 else -1.0
     ok = sign * area2 > 1e-9
     # Turned-over triangles: by value, and in four calls so that no two neighbours share one.

@@ -392,3 +392,28 @@ def test_lattice_fill_agrees_with_a_delaunay_fill_of_the_same_dots():
         assert lattice.nearest_blocking_distance_mm(350.0, 3000.0) == pytest.approx(
             general.nearest_blocking_distance_mm(350.0, 3000.0), abs=RES
         )
+
+
+def test_strips_are_reused_only_while_they_still_fit_the_dots():
+    sc = scenes.three_boxes(MOUNT)
+    a, b = scene_cloud(sc, seed=11), scene_cloud(sc, seed=12)  # same rays, new noise
+    slopes = [(c.xyz[:, 0] / c.xyz[:, 2], c.xyz[:, 1] / c.xyz[:, 2]) for c in (a, b)]
+    strips = _lattice_strips(*slopes[0])
+    assert strips is not None and strips.fits(*slopes[1])
+    u, v = slopes[1]
+    assert not strips.fits(u[1:], v[1:])  # a dot fewer
+    i = int(np.argmax(u))
+    assert not strips.fits(u, np.where(np.arange(len(v)) == i, -v[i] - 0.05, v))  # out of order
+    assert not strips.fits(np.where(np.arange(len(u)) == i, u[i] - 0.5, u), v)  # into another row
+    # A map that reuses the strips of the capture before sees what a fresh one sees.
+    reused, fresh_map = fresh(), fresh()
+    reused.update(a, MOUNT.x_offset_mm)
+    reused.clear()
+    reused.update(b, MOUNT.x_offset_mm)
+    fresh_map.update(b, MOUNT.x_offset_mm)
+    g1, g2 = reused.grid.states, fresh_map.grid.states
+    seen = (g1 != CellState.UNKNOWN) | (g2 != CellState.UNKNOWN)
+    assert np.mean(g1[seen] == g2[seen]) > 0.98
+    assert reused.nearest_blocking_distance_mm(350.0, 3000.0) == pytest.approx(
+        fresh_map.nearest_blocking_distance_mm(350.0, 3000.0), abs=RES
+    )
