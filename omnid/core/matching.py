@@ -355,7 +355,46 @@ def _match_best(
     # anchored pairs are certain; the rest carry the floor-first preference
     anchored = (k1[i] != _NO_RAY) | (k2[j] != _NO_RAY)
     gain = 1.0 - 0.01 * cost + 0.001 * anchored
-    return _row_viterbi(l1, p1[:, 1], i, j, ray, p2[j, 1], disp, gain, 0.3 * sb, 2.0 * sb, mult2)
+    # Pairs fixed by the labels of both dots, with no rival, need no search.
+    cnt_i = np.bincount(i, minlength=len(d1))
+    cnt_j = np.bincount(j, minlength=len(d2))
+    sure = (k1[i] != _NO_RAY) & (k2[j] != _NO_RAY) & (cnt_i[i] == 1) & (cnt_j[j] == 1)
+    si, sj = i[sure], j[sure]
+    rest = ~sure
+    used_j = np.zeros(len(d2), dtype=bool)
+    used_j[sj] = True
+    rest &= ~used_j[j] | (mult2[j] > 1)
+    slack = 0.3 * sb
+    if rest.any() and sure.any():
+        # the rest must keep the order of rays and camera-2 columns with the sure pairs
+        skey = l1[si] * 1000.0 + p1[si, 1]
+        so = np.argsort(skey)
+        skey, sray, se2 = skey[so], ray[sure][so], p2[sj[so], 1]
+        q = l1[i] * 1000.0 + p1[i, 1]
+        pos = np.searchsorted(skey, q)
+        left = np.maximum(pos - 1, 0)
+        right = np.minimum(pos, len(skey) - 1)
+        has_l = (pos > 0) & (np.rint(skey[left] / 1000.0) == l1[i])
+        has_r = (pos < len(skey)) & (np.rint(skey[right] / 1000.0) == l1[i])
+        e2c = p2[j, 1]
+        rest &= ~has_l | ((ray > sray[left]) & (e2c > se2[left] - slack))
+        rest &= ~has_r | ((ray < sray[right]) & (e2c < se2[right] + slack))
+    if not rest.any():
+        return si.astype(np.intp), sj.astype(np.intp)
+    vi, vj = _row_viterbi(
+        l1,
+        p1[:, 1],
+        i[rest],
+        j[rest],
+        ray[rest],
+        p2[j[rest], 1],
+        disp[rest],
+        gain[rest],
+        slack,
+        2.0 * sb,
+        mult2,
+    )
+    return np.concatenate([si, vi]).astype(np.intp), np.concatenate([sj, vj]).astype(np.intp)
 
 
 def _anchor_labels(
@@ -513,7 +552,7 @@ def _row_viterbi(
     K = np.full(shape, -(2**40), dtype=np.int64)
     E = np.full(shape, -np.inf)
     J = np.full(shape, -1, dtype=np.int64)
-    Dv = np.full(shape, np.nan)
+    Dv = np.full(shape, 1e9)  # no pair before: the first disparity step costs the same for all
     DB = np.zeros(shape, dtype=bool)
     W[cg, cp, slot] = gain
     K[cg, cp, slot] = ray
@@ -524,6 +563,7 @@ def _row_viterbi(
     CID = np.full(shape, -1, dtype=np.int64)
     CID[cg, cp, slot] = np.arange(len(i))
     gi = np.arange(G)
+    cidx = np.arange(C)[None, :]
     back = np.zeros(shape, dtype=np.int64)
     S = W[:, 0].copy()
     aK, aE, aJ, aD = K[:, 0].copy(), E[:, 0].copy(), J[:, 0].copy(), Dv[:, 0].copy()
@@ -536,10 +576,10 @@ def _row_viterbi(
         )
         compat = (aK[:, :, None] < k_t) & (aE[:, :, None] < e_t + slack)
         compat &= (aJ[:, :, None] != j_t) | DB[:, t, None, :C]
-        jump = np.minimum(np.abs(aD[:, :, None] - d_t) / disp_scale, 1.0)
-        tot = np.where(compat, S[:, :, None] - 0.05 * np.nan_to_num(jump), -np.inf)
+        jump = np.minimum(np.abs(aD[:, :, None] - d_t), disp_scale)
+        tot = np.where(compat, S[:, :, None] - jump * (0.05 / disp_scale), -np.inf)
         am = np.argmax(tot, axis=1)  # (G, C)
-        best = np.take_along_axis(tot, am[:, None, :], axis=1)[:, 0, :]
+        best = tot[gi[:, None], am, cidx]
         carry = np.argmax(S, axis=1)
         newS = np.empty_like(S)
         newS[:, :C] = W[:, t, :C] + best
