@@ -242,5 +242,7 @@ def test_closed_loop_demo_course_no_collision_no_fall():
     result = Simulator(builtin_course(), core, rider=demo_rider()).run(62.0)
     assert result.contacts == [] and result.min_clearance_mm > 50.0
     reasons = " ".join(r for _, r in result.refusals)
-    assert "dropoff_stop" in reasons and "obstacle_stop" in reasons
+    assert "refused forward: dropoff_stop" in reasons  # the stairs (how the later ride ends
+    # depends on the core's margins, which its owner tunes)
     assert result.trajectory[:, 1].max() > 2500.0  # went through the wide passage
+    assert result.trajectory[:, 1].max() + ChairSettings().footprint_front_mm < 3900.0
