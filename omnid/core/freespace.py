@@ -48,6 +48,9 @@ from omnid.core.types import PointClass, PointCloud
 _UNSEEN = 255  # observation layer: this update says nothing about the cell
 # Per-dot flags of the lattice fill (combined over a triangle's corners).
 _F_FLOOR, _F_OBSTACLE, _F_DROPOFF, _F_LOW, _F_INSIDE, _F_INSIDE_C = 1, 2, 4, 8, 16, 32
+# Flags of PointClass FLOOR, OBSTACLE, DROPOFF; a code beyond them has none of the three.
+_CLASS_FLAGS = np.array([_F_FLOOR, _F_OBSTACLE, _F_DROPOFF, 0], dtype=np.uint8)
+_CLASS_FLAGS.setflags(write=False)
 _FAR_MM = 1e9  # points farther than this (or not finite) are ignored
 _SHIFT = 4  # fractional bits of the fixed-point polygon corners given to cv2.fillPoly
 
@@ -339,10 +342,12 @@ class FreeSpaceMap:
         valid &= (cells[:, 1] >= 0) & (cells[:, 1] < shape[0])
         fl = valid & floor
         # A floor dot's own cell is free unless this cloud already called it a drop-off.
-        here = obs[cells[fl, 1], cells[fl, 0]]
-        obs[cells[fl, 1], cells[fl, 0]] = np.where(here == CellState.DROPOFF, here, CellState.FREE)
+        lin = cells[fl, 1] * shape[1] + cells[fl, 0]  # flat indices: cheaper than (row, col)
+        flat = obs.reshape(-1)  # a view
+        here = flat[lin]
+        flat[lin] = np.where(here == CellState.DROPOFF, here, np.uint8(CellState.FREE))
         direct_free = np.zeros(shape, dtype=bool)
-        direct_free[cells[fl, 1], cells[fl, 0]] = True
+        direct_free.reshape(-1)[lin] = True
         if len(missing_floor):
             res = self._anchor_settings.resolution_mm
             seg = missing_floor[:, 1] - missing_floor[:, 0]
@@ -407,14 +412,10 @@ class FreeSpaceMap:
         inside_c = inside[:n_dots].copy()
         inside_c[where_low] = inside[n_dots : n_dots + len(where_low)]
         c = cls[:n_dots]
-        flags = (
-            (c == PointClass.FLOOR) * _F_FLOOR
-            | (c == PointClass.OBSTACLE) * _F_OBSTACLE
-            | (c == PointClass.DROPOFF) * _F_DROPOFF
-            | low * _F_LOW
-            | inside[:n_dots] * _F_INSIDE
-            | inside_c * _F_INSIDE_C
-        ).astype(np.uint8)
+        flags = _CLASS_FLAGS[np.minimum(c, len(_CLASS_FLAGS) - 1)]
+        flags |= low * np.uint8(_F_LOW)
+        flags |= inside[:n_dots] * np.uint8(_F_INSIDE)
+        flags |= inside_c * np.uint8(_F_INSIDE_C)
         t0, t1, t2 = strips.tri[:, 0], strips.tri[:, 1], strips.tri[:, 2]
         f0, f1, f2 = flags[t0], flags[t1], flags[t2]
         every, some = f0 & f1 & f2, f0 | f1 | f2
