@@ -13,11 +13,13 @@ Story: READY=1 → the rider tilts forward → the chair drives → the daemon s
 from __future__ import annotations
 
 import os
+import queue
 import re
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -37,25 +39,30 @@ FORWARD = (-20.0, 0.0)  # roll < -12°: forward (thesis 4.2.2)
 BOX_NEAR_FACE_MM = 2000.0  # box-ahead course: the box's face ahead of the axle at start
 
 
-def _read_until(proc: subprocess.Popen, pattern: str, timeout_s: float, lines: list[str]) -> str:
-    """The first stdout line matching ``pattern`` (all lines read are kept in ``lines``)."""
-    end = time.monotonic() + timeout_s
-    assert proc.stdout is not None
-    os.set_blocking(proc.stdout.fileno(), False)
-    buf = ""
-    while time.monotonic() < end:
-        chunk = proc.stdout.read()
-        if chunk:
-            buf += chunk
-            while "\n" in buf:
-                line, buf = buf.split("\n", 1)
-                lines.append(line)
-                if re.search(pattern, line):
-                    return line
-        elif proc.poll() is not None:
-            break
-        time.sleep(0.02)
-    raise AssertionError(f"no line matching {pattern!r} in time:\n" + "\n".join(lines[-30:]))
+class Lines:
+    """The stdout lines of a process, read by a thread (so waits can time out)."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: list[str] = []
+        self._q: queue.Queue[str] = queue.Queue()
+        assert proc.stdout is not None
+        stream = proc.stdout
+        threading.Thread(target=lambda: [self._q.put(x) for x in stream], daemon=True).start()
+
+    def until(self, pattern: str, timeout_s: float) -> str:
+        """The next line matching ``pattern`` (AssertionError with the last lines on timeout)."""
+        end = time.monotonic() + timeout_s
+        while (left := end - time.monotonic()) > 0:
+            try:
+                line = self._q.get(timeout=left).rstrip("\n")
+            except queue.Empty:
+                break
+            self.lines.append(line)
+            if re.search(pattern, line):
+                return line
+        raise AssertionError(
+            f"no line matching {pattern!r} in time:\n" + "\n".join(self.lines[-30:])
+        )
 
 
 def _chair(lines: list[str]) -> tuple[float, float]:
@@ -96,15 +103,16 @@ def test_omnid_run_stops_the_simulated_chair_before_a_box(tmp_path: Path) -> Non
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(tmp_path / "notify.sock"))
     notify.settimeout(15.0)
-    sim_lines: list[str] = []
+    out_sim = Lines(sim)
+    sim_lines = out_sim.lines
     daemon: subprocess.Popen | None = None
     err_path = tmp_path / "omnid.log"
     try:
         depth = float(
-            re.search(r"floor depth (\d+)", _read_until(sim, "floor capture", 20, sim_lines))[1]  # type: ignore[index]
+            re.search(r"floor depth (\d+)", out_sim.until("floor capture", 20))[1]  # type: ignore[index]
         )
-        cu = _read_until(sim, "control unit: ", 20, sim_lines).split(": ", 1)[1].strip()
-        _read_until(sim, "cameras: ", 10, sim_lines)
+        cu = out_sim.until("control unit: ", 20).split(": ", 1)[1].strip()
+        out_sim.until("cameras: ", 10)
         calib = tmp_path / "calib.yaml"
         names = ("mask1", "base1", "mask2", "base2")
         out = subprocess.run(
@@ -144,12 +152,12 @@ def test_omnid_run_stops_the_simulated_chair_before_a_box(tmp_path: Path) -> Non
         # the chair drives ...
         t0 = time.monotonic()
         while _chair(sim_lines)[0] < 300.0:
-            _read_until(sim, r"^t=", 30, sim_lines)
+            out_sim.until(r"^t=", 30)
             assert time.monotonic() - t0 < 30, "\n".join(sim_lines[-10:]) + err_path.read_text()
         # ... and comes to rest before the box, the head still tilted forward
         still = 0
         while still < 6:  # 3 s at rest (two reports a second)
-            line = _read_until(sim, r"^t=", 30, sim_lines)
+            line = out_sim.until(r"^t=", 30)
             assert "collision" not in line, line
             still = still + 1 if abs(_chair(sim_lines)[1]) < 2.0 else 0
             assert time.monotonic() - t0 < 45, "\n".join(sim_lines[-10:])
@@ -157,7 +165,7 @@ def test_omnid_run_stops_the_simulated_chair_before_a_box(tmp_path: Path) -> Non
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(timeout=10) == 0
         sim.send_signal(signal.SIGTERM)
-        result = _read_until(sim, "^result: ", 10, sim_lines)
+        result = out_sim.until("^result: ", 10)
         assert sim.wait(timeout=10) == 0, result
     finally:
         for p in (daemon, sim):
