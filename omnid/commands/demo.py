@@ -21,7 +21,7 @@ def register(subparsers: Any) -> None:
         description=__doc__.split("\n")[0] if __doc__ else None,
     )
     add_run_arguments(p, default_out="./omnid-demo")
-    p.set_defaults(func=handle, duration_s=45.0)
+    p.set_defaults(func=handle, duration_s=62.0)
 
 
 def handle(args: argparse.Namespace) -> int:

@@ -25,7 +25,8 @@ Model (thesis 3.3, 4.3.2; SPEC §1)
 
 World frame: x, y on the floor (y left), θ counter-clockwise; the chair pose is the robot frame's
 origin (the wheel-axle midpoint) in the world. The footprint is a rectangle around the axle,
-mostly ahead of it (the front casters carry the front, the drive wheels sit on the axle).
+mostly behind it: the drive wheels are the front wheels, free castors carry the rear (thesis
+4.3.2.1), and the footrest overhangs the axle in front.
 """
 
 from __future__ import annotations
@@ -55,12 +56,14 @@ class ChairSettings:
     left_slip: float = 0.0  # fraction of wheel travel lost to slip, [0, 1)
     right_slip: float = 0.0
     deadband_duty: float = 0.0  # |duty| below this does not turn the wheel (static friction)
-    footprint_front_mm: float = 500.0  # footprint reaches this far ahead of the axle
-    footprint_rear_mm: float = 200.0  # ... and this far behind it
-    footprint_width_mm: float = 600.0
-    front_wheel_x_mm: float = 430.0  # front casters, ahead of the axle
-    front_wheel_y_mm: float = 230.0  # ... at ±this lateral offset
-    com_x_mm: float = 150.0  # centre of mass, ahead of the axle on the centre line
+    # Thesis 4.3.2.1: the drive wheels are at the front, free castors behind; the daemon's
+    # safety footprint (omnid.daemon.safety) describes the same chair.
+    footprint_front_mm: float = 350.0  # footprint reaches this far ahead of the axle
+    footprint_rear_mm: float = 750.0  # ... and this far behind it
+    footprint_width_mm: float = 700.0
+    castor_x_mm: float = -650.0  # the free castors, behind the axle
+    castor_y_mm: float = 250.0  # ... at ±this lateral offset
+    com_x_mm: float = -200.0  # centre of mass on the centre line (rider and batteries)
     collision_height_mm: float = 15.0  # boxes lower than this are driven over
     fall_depth_mm: float = 30.0  # drop-offs shallower than this are driven over
     max_substep_s: float = 0.005
@@ -135,7 +138,7 @@ class Contact:
     """The chair touched something it must not: a box (``collision``) or a drop-off (``fall``).
 
     ``index`` is the box's (or drop-off's) position in the world's tuple; ``part`` names what
-    touched it (``footprint``, ``centre of mass``, ``left front wheel``, ...).
+    touched it (``footprint``, ``centre of mass``, ``left front (drive) wheel``, ``left castor``, ...).
     """
 
     kind: Literal["collision", "fall"]
@@ -309,10 +312,10 @@ class Chair:
         s = self.settings
         local = {
             "centre of mass": (s.com_x_mm, 0.0),
-            "left front wheel": (s.front_wheel_x_mm, s.front_wheel_y_mm),
-            "right front wheel": (s.front_wheel_x_mm, -s.front_wheel_y_mm),
-            "left drive wheel": (0.0, s.track_mm / 2.0),
-            "right drive wheel": (0.0, -s.track_mm / 2.0),
+            "left front (drive) wheel": (0.0, s.track_mm / 2.0),
+            "right front (drive) wheel": (0.0, -s.track_mm / 2.0),
+            "left castor": (s.castor_x_mm, s.castor_y_mm),
+            "right castor": (s.castor_x_mm, -s.castor_y_mm),
         }
         pts = self.to_world(np.array(list(local.values()), dtype=np.float64))
         return {name: pts[i] for i, name in enumerate(local)}

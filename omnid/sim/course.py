@@ -3,19 +3,20 @@
 World frame (``omnid.sim.world``): x, y on the floor with y to the left, mm. The chair starts at
 the origin facing +x. Layout, seen from above (x up the page)::
 
-    x = 6500  ───────────── wall ──────────────
-              ░░░░░░░ stairs down 170 mm ░░░░│      (drop-off x 4800–6500, y −2200…600)
-    x = 4800  ░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░│
-                                   [box 3]      (x 3800–4200, y 1000–1400, 300 mm tall)
-    x = 2900  ═══════ ═══ wide ═══ narrow ═══   partition; wide gap y −450…450 (900 mm),
-                                                  narrow gap y 1200…1650 (450 mm)
-              [box 2]                           (x 1800–2200, y −1100…−600, 600 mm)
-                          [box 1]               (x 1300–1700, y 500…900, 400 mm)
+    x = 5500  ───────────── wall ──────────────
+              ░░░░░░░ stairs down 170 mm ░░░░│      (drop-off x 3900–5500, y −2200…600)
+    x = 3900  ░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░│
+                                   [box 3]      (x 2700–3100, y 1000–1400, 300 mm tall)
+    x = 2000  ═══════ ═══ wide ═══ narrow ═══   partition x 1900–2000; wide gap y −550…550
+                                                  (1100 mm), narrow gap y 1250…1700 (450 mm)
+              [box 2]                           (x 1300–1700, y −1100…−600, 600 mm)
+                          [box 1]               (x 800–1200, y 550…950, 400 mm)
     x = 0            chair ▲ (start)
-    x = −800  ───────────── wall ──────────────
+    x = −1300 ───────────── wall ──────────────
               y = −2200 (right)        y = +2200 (left)
 
-The chair (600 mm wide) fits through the wide gap but not the narrow one; driving straight on
+The chair (700 mm wide, plus the daemon's 50 mm margin on a 50 mm map grid) fits through the
+wide gap but not the narrow one; driving straight on
 from the start leads through the wide gap towards the stairs, which the daemon must refuse.
 """
 
@@ -55,20 +56,20 @@ def walls(x_min: float, x_max: float, y_min: float, y_max: float) -> tuple[Box, 
 
 def builtin_course() -> Course:
     """The demo course described in the module docstring."""
-    x0, x1, y0, y1 = -800.0, 6500.0, -2200.0, 2200.0
-    px0, px1 = 2800.0, 2900.0  # partition
-    wide, narrow = (-450.0, 450.0), (1200.0, 1650.0)
+    x0, x1, y0, y1 = -1300.0, 5500.0, -2200.0, 2200.0
+    px0, px1 = 1900.0, 2000.0  # partition
+    wide, narrow = (-550.0, 550.0), (1250.0, 1700.0)
     partition = (
         Box(px0, px1, y0, wide[0], WALL_HEIGHT_MM),
         Box(px0, px1, wide[1], narrow[0], WALL_HEIGHT_MM),
         Box(px0, px1, narrow[1], y1, WALL_HEIGHT_MM),
     )
     boxes = (
-        Box(1300.0, 1700.0, 500.0, 900.0, 400.0),
-        Box(1800.0, 2200.0, -1100.0, -600.0, 600.0),
-        Box(3800.0, 4200.0, 1000.0, 1400.0, 300.0),
+        Box(800.0, 1200.0, 550.0, 950.0, 400.0),
+        Box(1300.0, 1700.0, -1100.0, -600.0, 600.0),
+        Box(2700.0, 3100.0, 1000.0, 1400.0, 300.0),
     )
-    stairs = DropOff(4800.0, x1, y0, 600.0, 170.0)
+    stairs = DropOff(3900.0, x1, y0, 600.0, 170.0)
     world = World(boxes=(*boxes, *partition, *walls(x0, x1, y0, y1)), dropoffs=(stairs,))
     return Course(
         name="builtin",
@@ -77,19 +78,20 @@ def builtin_course() -> Course:
         x_range_mm=(x0 - WALL_MM, x1 + WALL_MM),
         y_range_mm=(y0 - WALL_MM, y1 + WALL_MM),
         labels=(
-            ("box 1", 1500.0, 700.0),
-            ("box 2", 2000.0, -850.0),
-            ("box 3", 4000.0, 1200.0),
-            ("wide passage", 2850.0, 0.0),
-            ("narrow passage", 2850.0, 1425.0),
-            ("stairs down", 5600.0, -800.0),
+            ("box 1", 1000.0, 750.0),
+            ("box 2", 1500.0, -850.0),
+            ("box 3", 2900.0, 1200.0),
+            ("wide passage", 1700.0, 0.0),
+            ("narrow passage", 1700.0, 1475.0),
+            ("stairs down", 4700.0, -800.0),
         ),
     )
 
 
 def empty_room(length_mm: float = 4000.0, width_mm: float = 3000.0) -> Course:
-    """A walled empty room with the chair at its back, facing the front wall ``length_mm`` away."""
-    x0, x1 = -500.0, length_mm - 500.0
+    """A walled empty room ``length_mm`` long; the chair starts 1 m from the back wall (its rear
+    reaches 750 mm behind the axle), facing the front wall ``length_mm − 1000`` mm ahead."""
+    x0, x1 = -1000.0, length_mm - 1000.0
     y0, y1 = -width_mm / 2.0, width_mm / 2.0
     return Course(
         name="empty-room",
@@ -101,17 +103,17 @@ def empty_room(length_mm: float = 4000.0, width_mm: float = 3000.0) -> Course:
 
 
 def demo_rider() -> HeadScript:
-    """The demo's rider: straight on towards the stairs (the daemon must stop the chair before
-    them), turn left, forward towards box 3 (must stop again), then rest."""
+    """The demo's rider: straight on through the wide passage towards the stairs (the daemon must
+    stop the chair before them), turn left, forward towards box 3 (must stop again), then rest."""
     return head_script(
         [
             ("neutral", 1.0),
-            ("forward", 24.0),
+            ("forward", 32.0),
             ("neutral", 1.0),
-            ("left", 3.5),
+            ("left", 10.0),
             ("neutral", 0.5),
-            ("forward", 10.0),
-            ("stop", 2.0),
+            ("forward", 12.0),
+            ("stop", 1.0),
             ("neutral", 1.0),
         ]
     )
@@ -119,7 +121,7 @@ def demo_rider() -> HeadScript:
 
 def demo_keys() -> KeyScript:
     """The same ride as :func:`demo_rider` on the keyboard."""
-    return KeyScript(((1.0, "forward"), (26.0, "left"), (29.5, "forward"), (40.0, "stop")))
+    return KeyScript(((1.3, "forward"), (34.6, "left"), (45.6, "forward"), (58.1, "stop")))
 
 
 COURSES = {"builtin": builtin_course, "empty-room": empty_room}

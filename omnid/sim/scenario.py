@@ -12,6 +12,7 @@ Two ways to run:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import time
@@ -22,16 +23,23 @@ from omnid.errors import OmnidError
 log = logging.getLogger(__name__)
 
 
-def make_core() -> Any:
-    """The daemon's ``ControlCore`` with its default configuration."""
+def make_core(rig_x_offset_mm: float = 300.0) -> Any:
+    """The daemon's ``ControlCore`` with its default configuration (``etc/omnid.yaml``
+    defaults), told where the simulated rig sits on the chair."""
     try:
+        from omnid.daemon.config import OmnidConfig  # type: ignore[import-not-found,unused-ignore]
         from omnid.daemon.core import ControlCore  # type: ignore[import-not-found,unused-ignore]
     except ImportError as exc:
         raise OmnidError(
             f"the daemon core is not available in this build ({exc}); "
             "use `omnid simulate --drive T:LEFT:RIGHT` for an open-loop run"
         ) from exc
-    return ControlCore()
+    config = OmnidConfig()
+    config = dataclasses.replace(
+        config,
+        perception=dataclasses.replace(config.perception, rig_x_offset_mm=rig_x_offset_mm),
+    )
+    return ControlCore(config)
 
 
 def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int:

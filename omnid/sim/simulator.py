@@ -43,6 +43,7 @@ from omnid.config import require
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
+from omnid.errors import OmnidError
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
 from omnid.sim.rider import HeadScript, KeyScript
@@ -63,6 +64,7 @@ class SimSettings:
     perception_period_s: float = 0.2
     perception_latency_s: float = 0.1  # at least this long from capture to result
     perception: PerceptionMode = "truth"
+    control_unit: Literal["emulator", "direct"] = "emulator"
     truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
     watchdog_s: float = 0.25  # the control unit stops the motors after this silence
     stop_on_contact: bool = True  # end the run at the first collision or fall
@@ -186,6 +188,104 @@ class DirectControlUnit:
         self.plant.step(self.left_duty, self.right_duty, dt_s)
 
 
+class EmulatedControlUnit:
+    """The project's control-unit emulator (``omnid.devices.emulators.control_unit``) on the
+    virtual clock, every command and reply passing as bytes through the protocol codec.
+
+    It is the same code that serves a pty on the bench: it enforces its own watchdog, switches
+    the laser relay with its delay, and integrates the plant (the chair) lazily up to the clock.
+    """
+
+    def __init__(self, plant: Chair, watchdog_s: float = 0.25) -> None:
+        from omnid.devices import cu_codec as codec  # type: ignore[attr-defined,unused-ignore]
+        from omnid.devices.emulators.control_unit import (  # type: ignore[import-not-found,unused-ignore]
+            ControlUnitEmulator,
+        )
+
+        self._codec = codec
+        self._t = 0.0
+        self.emulator = ControlUnitEmulator(
+            plant=plant, clock=lambda: self._t, default_watchdog_s=watchdog_s
+        )
+        self._parser = codec.FrameParser(accept=(codec.TYPE_REPLY,))
+        self._seq = 0
+        self._raw: tuple[int, int] | None = None
+        self._clocks = (0, 0)
+        self.missed_replies = 0
+
+    @property
+    def laser_on(self) -> bool:
+        return bool(self.emulator.laser_on)
+
+    @property
+    def watchdog_trips(self) -> int:
+        return int(self.emulator.watchdog_trips)
+
+    def exchange(self, command: Any, now_s: float) -> Any:
+        """Encode ``command``, feed the bytes to the emulator at ``now_s``, decode its reply
+        (None when it gives none)."""
+        from omnid.devices.control_unit import (  # type: ignore[import-not-found,unused-ignore]
+            ControlUnitStatus,
+            WheelCommand,
+        )
+
+        codec = self._codec
+        self._t = now_s
+        self._seq = (self._seq + 1) & 0xFF
+        cmd = WheelCommand(
+            float(command.left_duty),
+            float(command.right_duty),
+            laser_on=bool(command.laser_on),
+            enable=bool(command.enable),
+        )
+        reply = self.emulator.handle_bytes(codec.encode_command(cmd.to_frame(self._seq)))
+        frames = [
+            f
+            for f in self._parser.feed(reply)
+            if isinstance(f, codec.ReplyFrame) and f.seq == self._seq
+        ]
+        if not frames:
+            self.missed_replies += 1
+            return None
+        rep = frames[-1]
+        raw = (rep.left_clocks, rep.right_clocks)
+        if self._raw is not None:
+            self._clocks = (
+                self._clocks[0] + codec.unwrap_int32(self._raw[0], raw[0]),
+                self._clocks[1] + codec.unwrap_int32(self._raw[1], raw[1]),
+            )
+        else:
+            self._clocks = raw
+        self._raw = raw
+        return ControlUnitStatus(
+            seq=rep.seq,
+            left_clocks=self._clocks[0],
+            right_clocks=self._clocks[1],
+            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
+            faults=rep.faults,
+            timestamp_s=now_s,
+            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
+            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
+            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
+        )
+
+    def advance(self, now_s: float, dt_s: float) -> None:
+        """Let the emulator drive the plant up to ``now_s + dt_s``."""
+        self._t = now_s + dt_s
+        _ = self.emulator.clocks  # integrates the plant to the clock
+
+
+def make_control_unit(plant: Chair, kind: str, watchdog_s: float) -> Any:
+    """``emulator`` (bytes through the codec; falls back to ``direct`` when the device layer is
+    absent, with a warning) or ``direct``."""
+    if kind == "emulator":
+        try:
+            return EmulatedControlUnit(plant, watchdog_s)
+        except ImportError as exc:
+            log.warning("control-unit emulator unavailable (%s); using the direct model", exc)
+    return DirectControlUnit(plant, watchdog_s)
+
+
 # -- open-loop driving ---------------------------------------------------------------------------
 
 
@@ -224,21 +324,28 @@ class OpenLoopDriver:
         pass
 
 
+# -- rider ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SimTiltReading:
+    """A head-tilt reading (the fields of ``omnid.devices.tilt.TiltReading``), deg and s."""
+
+    roll_deg: float
+    pitch_deg: float
+    timestamp_s: float
+
+
+def _tilt_reading_type() -> Any:
+    """The device layer's ``TiltReading`` when present, else :class:`SimTiltReading`."""
+    try:
+        from omnid.devices.tilt import TiltReading  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        return SimTiltReading
+    return TiltReading
+
+
 # -- perception ---------------------------------------------------------------------------------
-
-
-class _RefusalLog(logging.Handler):
-    """Collects the daemon's refusal log records (every refusal is logged with its reason)."""
-
-    def __init__(self, clock: Callable[[], float]) -> None:
-        super().__init__(logging.INFO)
-        self.clock = clock
-        self.records: list[tuple[float, str]] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        msg = record.getMessage()
-        if "refus" in msg.lower():
-            self.records.append((self.clock(), msg))
 
 
 def _perimeter(chair: Chair, per_side: int = 6) -> NDArray[np.float64]:
@@ -287,11 +394,22 @@ class Simulator:
         self.mount = mount or RigMount()
         self.rig = rig or StereoRig.nominal(floor_depth_mm=self.mount.height_mm)
         self.pattern = pattern or DotPattern()
-        self.control_unit = DirectControlUnit(self.chair, self.settings.watchdog_s)
+        self.control_unit = make_control_unit(
+            self.chair, self.settings.control_unit, self.settings.watchdog_s
+        )
         self.progress = progress
         self.now_s = 0.0
         self._rng = np.random.default_rng(self.settings.seed)
         self._calib: Any = None
+        if self.settings.perception == "pipeline":
+            try:
+                import omnid.core.calibration
+                import omnid.core.pipeline  # noqa: F401
+            except ImportError as exc:
+                raise OmnidError(
+                    f"perception 'pipeline' needs the vision pipeline, which is not in this "
+                    f"build ({exc}); use perception 'truth'"
+                ) from exc
         box_rects = [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
         drop_rects = [
             (d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs
@@ -369,6 +487,23 @@ class Simulator:
 
     # -- the loop -----------------------------------------------------------------------------
 
+    def _note_decision(self, now: float, out: list[tuple[float, str]], last: str) -> str:
+        """Record a refusal when the daemon core's last cycle stopped a motion the rider asked
+        for (``ControlCore.last_report``). A refusal repeated cycle after cycle (or flickering
+        with a slow-down) is recorded once, again only when its text changes or after 5 s."""
+        report = getattr(self.controller, "last_report", None)
+        if report is None:
+            return last
+        demand, decision = report.demand, report.decision
+        asked = not demand.stop and (demand.forward != 0.0 or demand.turn != 0.0)
+        if not asked or decision is None or not decision.stopped:
+            return last
+        reasons = ", ".join(getattr(r, "value", str(r)) for r in report.reasons) or "stopped"
+        text = f"refused {demand.reason.removeprefix('tilt_').removeprefix('key_')}: {reasons}"
+        if text != last or not out or now - out[-1][0] > 5.0:
+            out.append((now, text))
+        return text
+
     def run(self, duration_s: float) -> SimResult:
         """Simulate ``duration_s`` virtual seconds; returns the trajectory, contacts, refusals,
         what perception saw and timing figures."""
@@ -379,15 +514,8 @@ class Simulator:
         k_ctrl, k_tilt = s.ticks(s.control_period_s), s.ticks(s.tilt_period_s)
         k_perc, k_rec = s.ticks(s.perception_period_s), s.ticks(s.record_period_s)
 
-        tilt_type = None
-        if self.rider is not None:
-            from omnid.devices.tilt import TiltReading  # type: ignore[import-not-found,attr-defined,unused-ignore]
+        tilt_type = _tilt_reading_type() if self.rider is not None else None
 
-            tilt_type = TiltReading
-
-        refusal_log = _RefusalLog(lambda: self.now_s)
-        daemon_log = logging.getLogger("omnid.daemon")
-        daemon_log.addHandler(refusal_log)
         traj: list[tuple[float, float, float, float]] = []
         cmds: list[tuple[float, float, float, float, float]] = []
         contacts: list[tuple[float, Contact]] = []
@@ -396,75 +524,76 @@ class Simulator:
         t_perc: list[float] = []
         t_ctrl: list[float] = []
         min_clear = math.inf
+        refusals: list[tuple[float, str]] = []
+        last_refusal = ""
         wall0 = time.perf_counter()
         last_progress = -math.inf
-        try:
-            for k in range(n_ticks + 1):
-                now = k * dt
-                self.now_s = now
-                if self.rider is not None and tilt_type is not None and k % k_tilt == 0:
-                    roll, pitch = self.rider.at(now)
-                    self.controller.on_tilt(tilt_type(roll, pitch, now))
-                if self.keys is not None:
-                    for _, command in self.keys.between(now - dt, now):
-                        self.controller.on_key(command, now)
-                # Deliver finished perception results (charged with their computing time).
-                while pending and pending[0][0] <= now + 1e-9:
-                    _, t_cap, cloud, pose = pending.pop(0)
-                    self.controller.on_perception(cloud, t_cap)
-                    keep = cloud.classes != PointClass.FLOOR
-                    if np.any(keep):
-                        w = rig_to_world(cloud.xyz[keep], pose, self.mount)
-                        seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
-                if k % k_perc == 0:
-                    w0 = time.perf_counter()
-                    cloud = self.perceive_now()
-                    took = time.perf_counter() - w0
-                    t_perc.append(took)
-                    ready = now + max(took, s.perception_latency_s)
-                    pending.append((ready, now, cloud, self.chair.pose))
-                if k % k_ctrl == 0:
-                    w0 = time.perf_counter()
-                    command = self.controller.step(now)
-                    t_ctrl.append(time.perf_counter() - w0)
-                    status = self.control_unit.exchange(command, now)
+        for k in range(n_ticks + 1):
+            now = k * dt
+            self.now_s = now
+            if self.rider is not None and tilt_type is not None and k % k_tilt == 0:
+                roll, pitch = self.rider.at(now)
+                self.controller.on_tilt(tilt_type(roll, pitch, now))
+            if self.keys is not None:
+                for _, command in self.keys.between(now - dt, now):
+                    self.controller.on_key(command, now)
+            # Deliver finished perception results (charged with their computing time).
+            while pending and pending[0][0] <= now + 1e-9:
+                _, t_cap, cloud, pose = pending.pop(0)
+                self.controller.on_perception(cloud, t_cap)
+                keep = cloud.classes != PointClass.FLOOR
+                if np.any(keep):
+                    w = rig_to_world(cloud.xyz[keep], pose, self.mount)
+                    seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
+            if k % k_perc == 0:
+                w0 = time.perf_counter()
+                cloud = self.perceive_now()
+                took = time.perf_counter() - w0
+                t_perc.append(took)
+                ready = now + max(took, s.perception_latency_s)
+                pending.append((ready, now, cloud, self.chair.pose))
+            if k % k_ctrl == 0:
+                w0 = time.perf_counter()
+                command = self.controller.step(now)
+                t_ctrl.append(time.perf_counter() - w0)
+                last_refusal = self._note_decision(now, refusals, last_refusal)
+                status = self.control_unit.exchange(command, now)
+                if status is not None:
                     self.controller.on_status(status)
-                    cmds.append(
-                        (
-                            now,
-                            float(command.left_duty),
-                            float(command.right_duty),
-                            float(command.laser_on),
-                            float(command.enable),
-                        )
+                cmds.append(
+                    (
+                        now,
+                        float(command.left_duty),
+                        float(command.right_duty),
+                        float(command.laser_on),
+                        float(command.enable),
                     )
-                if k % k_rec == 0:
-                    traj.append((now, *self.chair.pose))
-                    min_clear = min(
-                        min_clear,
-                        _clearance(_perimeter(self.chair), self._box_rects),
-                        _clearance(
-                            np.array(list(self.chair.support_points().values())), self._drop_rects
-                        ),
-                    )
-                    if self.progress is not None and now - last_progress >= 1.0:
-                        last_progress = now
-                        self.progress(now, self)
-                found = self.chair.contacts(self.course.world)
-                new = [c for c in found if all(c != old for _, old in contacts)]
-                for c in new:
-                    log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
-                    contacts.append((now, c))
-                if new and s.stop_on_contact:
-                    traj.append((now, *self.chair.pose))
-                    break
-                if k < n_ticks:
-                    self.control_unit.advance(now, dt)
-        finally:
-            daemon_log.removeHandler(refusal_log)
+                )
+            if k % k_rec == 0:
+                traj.append((now, *self.chair.pose))
+                min_clear = min(
+                    min_clear,
+                    _clearance(_perimeter(self.chair), self._box_rects),
+                    _clearance(
+                        np.array(list(self.chair.support_points().values())), self._drop_rects
+                    ),
+                )
+                if self.progress is not None and now - last_progress >= 1.0:
+                    last_progress = now
+                    self.progress(now, self)
+            found = self.chair.contacts(self.course.world)
+            new = [c for c in found if all(c != old for _, old in contacts)]
+            if new:
+                min_clear = 0.0
+            for c in new:
+                log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
+                contacts.append((now, c))
+            if new and s.stop_on_contact:
+                traj.append((now, *self.chair.pose))
+                break
+            if k < n_ticks:
+                self.control_unit.advance(now, dt)
         wall = time.perf_counter() - wall0
-        refusals = list(refusal_log.records)
-        refusals += [(float(t), str(r)) for t, r in getattr(self.controller, "refusals", ())]
         timings = {
             "wall_s": wall,
             "virtual_s": self.now_s,
@@ -475,6 +604,7 @@ class Simulator:
             "control_step_max_ms": 1e3 * float(np.max(t_ctrl)) if t_ctrl else 0.0,
             "perception_cycles": float(len(t_perc)),
             "watchdog_trips": float(self.control_unit.watchdog_trips),
+            "bytes_link": float(isinstance(self.control_unit, EmulatedControlUnit)),
         }
         return SimResult(
             duration_s=self.now_s,

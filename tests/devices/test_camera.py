@@ -207,3 +207,15 @@ def test_device_mode_flush_drains_the_driver_queue(tmp_path, caplog):
     with caplog.at_level("WARNING"):
         assert asyncio.run(go()) == (0, 3)
     assert "refused" in caplog.text
+
+
+def test_image_pair_replay_loops(tmp_path):
+    for k in range(2):
+        for cam in (1, 2):
+            cv2.imwrite(str(tmp_path / f"f{k}_{cam}.png"), _frame(k, cam))
+
+    async def go():
+        src = open_camera(f"replay://{tmp_path}?loop=1")
+        return [round((float((await src.read_pair())[0].mean()) - 10) / 20) for _ in range(5)]
+
+    assert asyncio.run(go()) == [0, 1, 0, 1, 0]

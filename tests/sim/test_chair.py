@@ -150,7 +150,7 @@ class _World:
 
 
 def test_footprint_overlapping_a_box_is_a_collision():
-    world = _World(boxes=(_Box(480, 800, -100, 100, 300),))
+    world = _World(boxes=(_Box(330, 800, -100, 100, 300),))
     assert [c.kind for c in Chair(IDEAL).contacts(world)] == ["collision"]
     assert Chair(IDEAL, pose=(-30.0, 0.0, 0.0)).contacts(world) == []
 
@@ -179,10 +179,18 @@ def test_low_boxes_and_shallow_drops_are_driven_over():
 
 
 def test_front_wheels_over_a_drop_off_is_a_fall():
-    drop = _Drop(440, 2000, -1000, 1000, 200)  # front casters at x = 430 are still on the floor
+    drop = _Drop(10, 2000, -1000, 1000, 200)  # front (drive) wheels at x = 0: still on the floor
     chair = Chair(IDEAL)
-    assert chair.contacts(_World(dropoffs=(drop,))) == []
-    run(chair, 0.2, 0.2, 0.5)  # 0.2·235.5·0.5 ≈ 24 mm forward: casters over the edge
+    assert chair.contacts(_World(dropoffs=(drop,))) == []  # the footrest overhangs: no fall
+    run(chair, 0.2, 0.2, 0.5)  # 0.2·235.5·0.5 ≈ 24 mm forward: wheels over the edge
     contacts = chair.contacts(_World(dropoffs=(drop,)))
     assert [c.kind for c in contacts] == ["fall"]
-    assert contacts[0].part.endswith("front wheel")
+    assert "front (drive) wheel" in contacts[0].part
+
+
+def test_reversing_castors_over_a_drop_off_is_a_fall():
+    drop = _Drop(-3000, -660, -1000, 1000, 200)  # castors at x = −650
+    chair = Chair(IDEAL)
+    assert chair.contacts(_World(dropoffs=(drop,))) == []
+    run(chair, -0.2, -0.2, 0.5)
+    assert [c.part for c in chair.contacts(_World(dropoffs=(drop,)))] == ["left castor"]

@@ -1,0 +1,33 @@
+"""``omnid run --config etc/omnid.yaml`` — the wheelchair control daemon (systemd: Type=notify)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "run",
+        help="run the control daemon",
+        description="Run the wheelchair control daemon until SIGTERM (SIGHUP reloads the config).",
+    )
+    parser.add_argument(
+        "--config", default="/etc/omnid/omnid.yaml", help="configuration file (etc/omnid.yaml)"
+    )
+    parser.add_argument(
+        "--check", action="store_true", help="only validate the configuration and exit"
+    )
+    parser.set_defaults(func=handle)
+
+
+def handle(args: argparse.Namespace) -> int:
+    from omnid.daemon.config import load_config
+
+    if args.check:
+        load_config(args.config)
+        print(f"{args.config}: ok")
+        return 0
+    from omnid.daemon.run import main
+
+    return main(args.config)

@@ -1,0 +1,74 @@
+"""The perception pipeline: one stereo capture → a classified point cloud (thesis ch. 5–7).
+
+``perceive(capture, calib, method, settings)`` subtracts mask from base, detects the dots of
+both cameras, matches them (:mod:`omnid.core.matching`), triangulates the pairs
+(:mod:`omnid.core.triangulate`) and classifies each point as floor, obstacle or drop-off
+(:mod:`omnid.core.classify`). Pure: no I/O, no globals; the daemon runs it in a worker thread.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+
+from omnid.config import require
+from omnid.core.calibration import Calibration
+from omnid.core.detect import DetectionParams, detect_dots
+from omnid.core.matching import MatchMethod, MatchSettings, match_dots
+from omnid.core.types import PointCloud, StereoCapture
+from omnid.errors import InputError
+
+
+@dataclass(frozen=True)
+class PerceptionSettings:
+    """Settings of each stage. ``detection_method`` None means: the same as the method."""
+
+    detection_method: Literal["thesis", "best"] | None = "best"
+    detection: DetectionParams = field(default_factory=DetectionParams)
+    matching: MatchSettings = field(default_factory=MatchSettings)
+    pixel_sigma_px: float = 0.3  # image noise of a dot centre, for the covariance
+    classify: Any = None  # omnid.core.classify.ClassifySettings, or None for its defaults
+
+    def __post_init__(self) -> None:
+        require(self.pixel_sigma_px > 0, "pixel_sigma_px", "must be positive")
+
+
+def perceive(
+    capture: StereoCapture,
+    calib: Calibration,
+    method: MatchMethod = "best",
+    settings: PerceptionSettings | None = None,
+) -> PointCloud:
+    """Classified laser dots (rig frame, mm) seen in ``capture`` with ``method`` matching and
+    triangulation. An image without dots gives an empty cloud."""
+    from omnid.core.classify import classify
+    from omnid.core.triangulate import triangulate
+
+    s = settings or PerceptionSettings()
+    if method not in ("thesis", "best"):
+        raise ValueError(f"unknown method {method!r} (known: thesis, best)")
+    expected = tuple(calib.rig.cam1.image_shape)
+    if capture.shape != expected:
+        raise InputError(
+            f"capture is {capture.shape[1]}x{capture.shape[0]} px but the calibration is for "
+            f"{expected[1]}x{expected[0]} px"
+        )
+    det = s.detection_method or method
+    d1 = detect_dots(capture.mask1, capture.base1, det, s.detection)
+    d2 = detect_dots(capture.mask2, capture.base2, det, s.detection)
+    pixels = match_dots(calib, d1, d2, method, s.matching)
+    H = calib.floor_depth_mm
+    if len(pixels) == 0:
+        return PointCloud(floor_depth_mm=H)
+    xyz, cov = triangulate(calib.rig, pixels, method, s.pixel_sigma_px)
+    ok = np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 0)
+    cloud = PointCloud(
+        xyz=xyz[ok],
+        cov=cov[ok],
+        pixels=pixels[ok],
+        classes=np.zeros(int(ok.sum()), dtype=np.uint8),
+        floor_depth_mm=H,
+    )
+    return replace(cloud, classes=np.asarray(classify(cloud, s.classify), dtype=np.uint8))

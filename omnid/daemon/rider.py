@@ -1,0 +1,341 @@
+"""Rider commands: head tilt, joystick and keyboard, and the priority mux (thesis 4.1.1, 4.2; SPEC §5).
+
+Head tilt (thesis 4.2.2) — four thresholds on the calibrated angles, a dead zone between them::
+
+    roll  < −T  → forward        roll  > +T → stop
+    pitch < −T  → right          pitch > +T → left
+
+omnid adds what a rider who cannot use the hands needs so that an involuntary movement does not
+drive the chair:
+
+- a calibrated neutral pose (offsets subtracted before the thresholds, :func:`neutral_from_samples`);
+- hysteresis: a command, once active, holds until its angle falls back inside ``release_deg``
+  (< ``threshold_deg``), so noise around the threshold does not chatter;
+- a dwell time: a motion command takes effect only after the head stayed past its threshold for
+  ``dwell_s``;
+- stop needs no dwell and always wins at once, in this source and across sources.
+
+The mux (:class:`RiderMux`) takes the latest reading of each enabled source. A continuously
+streaming source (tilt sensor, joystick) that is silent or stale for longer than its
+``timeout_s`` counts as a stop — the chair must not keep a command nobody is confirming. Keyboard
+presses are events: each holds for ``hold_s`` (terminal key repeat keeps it alive), then expires.
+Any source's stop wins; otherwise the highest-priority source that asks for motion is obeyed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Literal, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from omnid.config import require
+
+SourceName = Literal["joystick", "keyboard", "tilt"]
+
+
+class TiltSample(Protocol):
+    """What the rider layer reads of a tilt reading (``omnid.devices.tilt.TiltReading``)."""
+
+    @property
+    def roll_deg(self) -> float: ...
+    @property
+    def pitch_deg(self) -> float: ...
+    @property
+    def timestamp_s(self) -> float: ...
+
+
+class JoystickSample(Protocol):
+    """What the rider layer reads of a joystick reading (``omnid.devices.joystick.JoystickReading``)."""
+
+    @property
+    def forward(self) -> float: ...
+    @property
+    def turn(self) -> float: ...
+    @property
+    def timestamp_s(self) -> float: ...
+
+
+class Intent(Enum):
+    """A discrete rider command (thesis 4.1.1)."""
+
+    NONE = "none"  # dead zone: nothing asked
+    STOP = "stop"
+    FORWARD = "forward"
+    LEFT = "left"
+    RIGHT = "right"
+
+
+@dataclass(frozen=True)
+class TiltSettings:
+    """Head-tilt interpretation. Angles in degrees, times in seconds."""
+
+    enabled: bool = True
+    threshold_deg: float = 12.0  # thesis 4.2.2: T, to enter a command
+    release_deg: float = 8.0  # hysteresis: an active command holds until |angle| < release
+    dwell_s: float = 0.3  # head must stay past T this long before a motion command acts
+    roll_offset_deg: float = 0.0  # calibrated neutral pose
+    pitch_offset_deg: float = 0.0
+    timeout_s: float = 0.2  # no reading for this long → stop (the sensor reads every 10 ms)
+    forward_mode: Literal["hold", "latch"] = "hold"  # latch: forward holds until stop/turn
+    forward_fraction: float = 0.6  # of the maximum speed
+    turn_fraction: float = 0.4  # of the maximum turn rate
+
+    def __post_init__(self) -> None:
+        require(0 < self.threshold_deg <= 45, "threshold_deg", "must be in (0, 45]")
+        require(
+            0 < self.release_deg <= self.threshold_deg,
+            "release_deg",
+            "must be in (0, threshold_deg]",
+        )
+        require(0 <= self.dwell_s <= 5, "dwell_s", "must be in [0, 5]")
+        require(abs(self.roll_offset_deg) <= 45, "roll_offset_deg", "must be within ±45")
+        require(abs(self.pitch_offset_deg) <= 45, "pitch_offset_deg", "must be within ±45")
+        require(0 < self.timeout_s <= 5, "timeout_s", "must be in (0, 5]")
+        require(0 < self.forward_fraction <= 1, "forward_fraction", "must be in (0, 1]")
+        require(0 < self.turn_fraction <= 1, "turn_fraction", "must be in (0, 1]")
+
+
+@dataclass(frozen=True)
+class JoystickSettings:
+    """Proportional hand control; ``forward`` and ``turn`` (left positive) in [-1, 1]."""
+
+    enabled: bool = False
+    deadzone: float = 0.1  # |axis| below this counts as centred
+    timeout_s: float = 0.2  # no reading for this long → stop
+
+    def __post_init__(self) -> None:
+        require(0 <= self.deadzone < 1, "deadzone", "must be in [0, 1)")
+        require(0 < self.timeout_s <= 5, "timeout_s", "must be in (0, 5]")
+
+
+@dataclass(frozen=True)
+class KeyboardSettings:
+    """Arrow keys (thesis 4.2.1): up forward, left, right, down stop."""
+
+    enabled: bool = True
+    hold_s: float = 0.5  # a press holds this long; key repeat renews it
+    forward_fraction: float = 0.5
+    turn_fraction: float = 0.4
+
+    def __post_init__(self) -> None:
+        require(0 < self.hold_s <= 5, "hold_s", "must be in (0, 5]")
+        require(0 < self.forward_fraction <= 1, "forward_fraction", "must be in (0, 1]")
+        require(0 < self.turn_fraction <= 1, "turn_fraction", "must be in (0, 1]")
+
+
+@dataclass(frozen=True)
+class RiderSettings:
+    """All rider inputs and their priority (first wins among sources asking for motion)."""
+
+    tilt: TiltSettings = field(default_factory=TiltSettings)
+    joystick: JoystickSettings = field(default_factory=JoystickSettings)
+    keyboard: KeyboardSettings = field(default_factory=KeyboardSettings)
+    priority: tuple[SourceName, ...] = ("joystick", "keyboard", "tilt")
+
+    def __post_init__(self) -> None:
+        require(
+            sorted(self.priority) == ["joystick", "keyboard", "tilt"],
+            "priority",
+            "must list joystick, keyboard and tilt once each",
+        )
+
+
+@dataclass(frozen=True)
+class RiderDemand:
+    """What the rider asks: fractions of the maximum speed / turn rate (turn > 0 is left)."""
+
+    forward: float = 0.0
+    turn: float = 0.0
+    stop: bool = True  # an explicit or fail-safe stop (the chair brakes)
+    source: str = "none"
+    reason: str = "idle"
+
+    @property
+    def moving(self) -> bool:
+        return not self.stop and (self.forward != 0.0 or self.turn != 0.0)
+
+
+def neutral_from_samples(roll_deg: ArrayLike, pitch_deg: ArrayLike) -> tuple[float, float]:
+    """Neutral head pose (roll, pitch offsets in degrees): the median of readings at rest.
+
+    The median ignores a few involuntary movements during the calibration seconds.
+    """
+    r = np.asarray(roll_deg, dtype=np.float64).ravel()
+    p = np.asarray(pitch_deg, dtype=np.float64).ravel()
+    if r.size == 0 or p.size == 0:
+        raise ValueError("neutral_from_samples: no readings")
+    return float(np.median(r)), float(np.median(p))
+
+
+class TiltInterpreter:
+    """Thresholds with neutral offsets, hysteresis and dwell → the current :class:`Intent`."""
+
+    def __init__(self, settings: TiltSettings) -> None:
+        self.settings = settings
+        self.roll_offset_deg = settings.roll_offset_deg
+        self.pitch_offset_deg = settings.pitch_offset_deg
+        self.active = Intent.NONE
+        self._pending = Intent.NONE
+        self._pending_since_s = 0.0
+        self.last_timestamp_s: float | None = None
+
+    def set_neutral(self, roll_offset_deg: float, pitch_offset_deg: float) -> None:
+        """Use a new calibrated neutral pose (degrees); clears any active command."""
+        self.roll_offset_deg = float(roll_offset_deg)
+        self.pitch_offset_deg = float(pitch_offset_deg)
+        self.active = Intent.NONE
+        self._pending = Intent.NONE
+
+    def _past(self, intent: Intent, roll: float, pitch: float) -> float:
+        """How far past its threshold the head is for ``intent`` (deg; ≤ 0: not past)."""
+        s = self.settings
+        limit = s.release_deg if intent is self.active else s.threshold_deg
+        if intent is Intent.FORWARD:
+            return -roll - limit
+        if intent is Intent.STOP:
+            return roll - limit
+        if intent is Intent.RIGHT:
+            return -pitch - limit
+        if intent is Intent.LEFT:
+            return pitch - limit
+        return 0.0
+
+    def update(self, roll_deg: float, pitch_deg: float, timestamp_s: float) -> Intent:
+        """Feed one reading (raw angles, deg; monotonic time, s); returns the active intent."""
+        s = self.settings
+        self.last_timestamp_s = float(timestamp_s)
+        roll = float(roll_deg) - self.roll_offset_deg
+        pitch = float(pitch_deg) - self.pitch_offset_deg
+        if not (np.isfinite(roll) and np.isfinite(pitch)):
+            self.active, self._pending = Intent.STOP, Intent.NONE
+            return self.active
+        if self._past(Intent.STOP, roll, pitch) > 0:
+            # stop: no dwell, wins over everything
+            self.active, self._pending = Intent.STOP, Intent.NONE
+            return self.active
+        motions = (Intent.FORWARD, Intent.RIGHT, Intent.LEFT)
+        excess = {m: self._past(m, roll, pitch) for m in motions}
+        held = [m for m in motions if excess[m] > 0]
+        if self.active in held:
+            candidate = self.active
+        elif held:
+            candidate = max(held, key=lambda m: excess[m])
+        else:
+            candidate = Intent.NONE
+        if candidate is self.active:
+            self._pending = Intent.NONE
+            return self.active
+        # the active command is no longer held
+        if not (s.forward_mode == "latch" and self.active is Intent.FORWARD):
+            self.active = Intent.NONE
+        if candidate is Intent.NONE:
+            self._pending = Intent.NONE
+            return self.active
+        if candidate is not self._pending:
+            self._pending, self._pending_since_s = candidate, float(timestamp_s)
+        if float(timestamp_s) - self._pending_since_s >= s.dwell_s:
+            self.active, self._pending = candidate, Intent.NONE
+        return self.active
+
+
+_KEYS: dict[str, Intent] = {
+    "up": Intent.FORWARD,
+    "forward": Intent.FORWARD,
+    "left": Intent.LEFT,
+    "right": Intent.RIGHT,
+    "down": Intent.STOP,
+    "stop": Intent.STOP,
+    "space": Intent.STOP,
+}
+
+
+def _intent_demand(intent: Intent, fwd: float, turn: float, source: str) -> RiderDemand | None:
+    if intent is Intent.STOP:
+        return RiderDemand(stop=True, source=source, reason=f"{source}_stop")
+    if intent is Intent.FORWARD:
+        return RiderDemand(forward=fwd, stop=False, source=source, reason=f"{source}_forward")
+    if intent is Intent.LEFT:
+        return RiderDemand(turn=turn, stop=False, source=source, reason=f"{source}_left")
+    if intent is Intent.RIGHT:
+        return RiderDemand(turn=-turn, stop=False, source=source, reason=f"{source}_right")
+    return None
+
+
+class RiderMux:
+    """Latest input of each source → one :class:`RiderDemand` (see the module docstring)."""
+
+    def __init__(self, settings: RiderSettings) -> None:
+        self.settings = settings
+        self.tilt = TiltInterpreter(settings.tilt)
+        self._joystick: tuple[float, float, float] | None = None  # forward, turn, t_s
+        self._key: tuple[Intent, float] | None = None  # intent, t_s
+
+    def on_tilt(self, reading: TiltSample) -> None:
+        self.tilt.update(reading.roll_deg, reading.pitch_deg, reading.timestamp_s)
+
+    def on_joystick(self, reading: JoystickSample) -> None:
+        fwd, turn = float(reading.forward), float(reading.turn)
+        if not (np.isfinite(fwd) and np.isfinite(turn)):
+            fwd, turn = float("nan"), float("nan")  # counted as a stop by decide()
+        self._joystick = (fwd, turn, float(reading.timestamp_s))
+
+    def on_key(self, command: str, now_s: float) -> None:
+        """A key press: ``up``/``forward``, ``left``, ``right``, ``down``/``stop``/``space``."""
+        intent = _KEYS.get(command.strip().lower())
+        if intent is None:
+            raise ValueError(f"unknown key command {command!r} (known: {', '.join(_KEYS)})")
+        self._key = (intent, float(now_s))
+
+    def _source_demand(self, name: str, now_s: float) -> RiderDemand | None:
+        s = self.settings
+        if name == "tilt":
+            if not s.tilt.enabled:
+                return None
+            t = self.tilt.last_timestamp_s
+            if t is None or now_s - t > s.tilt.timeout_s:
+                return RiderDemand(stop=True, source="tilt", reason="tilt_stale")
+            return _intent_demand(
+                self.tilt.active, s.tilt.forward_fraction, s.tilt.turn_fraction, "tilt"
+            )
+        if name == "joystick":
+            if not s.joystick.enabled:
+                return None
+            if self._joystick is None or now_s - self._joystick[2] > s.joystick.timeout_s:
+                return RiderDemand(stop=True, source="joystick", reason="joystick_stale")
+            fwd, turn, _ = self._joystick
+            if not (np.isfinite(fwd) and np.isfinite(turn)):
+                return RiderDemand(stop=True, source="joystick", reason="joystick_invalid")
+            dz = s.joystick.deadzone
+
+            def shape(a: float) -> float:
+                a = max(-1.0, min(1.0, a))
+                return 0.0 if abs(a) <= dz else float(np.sign(a)) * (abs(a) - dz) / (1.0 - dz)
+
+            f, t_ = shape(fwd), shape(turn)
+            if f == 0.0 and t_ == 0.0:
+                return None
+            return RiderDemand(forward=f, turn=t_, stop=False, source="joystick", reason="joystick")
+        if name == "keyboard":
+            if not s.keyboard.enabled or self._key is None:
+                return None
+            intent, t = self._key
+            if now_s - t > s.keyboard.hold_s or now_s < t - 1.0:
+                return None
+            return _intent_demand(
+                intent, s.keyboard.forward_fraction, s.keyboard.turn_fraction, "keyboard"
+            )
+        raise ValueError(f"unknown source {name!r}")
+
+    def decide(self, now_s: float) -> RiderDemand:
+        """The demand at monotonic time ``now_s``: any stop wins, else the first source moving."""
+        demands = [(n, self._source_demand(n, now_s)) for n in self.settings.priority]
+        for _, d in demands:
+            if d is not None and d.stop:
+                return d
+        for _, d in demands:
+            if d is not None and d.moving:
+                return d
+        return RiderDemand()

@@ -1,0 +1,68 @@
+"""Reading the PNG captures given on the command line, with one-line errors naming the file.
+
+Images are 8-bit grayscale or BGR PNGs, one per camera exposure (SPEC §6). A missing, empty,
+non-image, 16-bit or odd-shaped file raises :class:`~omnid.errors.InputError` naming it, and
+so does a capture whose four files differ in size or do not fit the calibration.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnid.core.types import StereoCapture
+from omnid.errors import InputError
+
+
+def read_image(path: str | Path) -> NDArray[np.uint8]:
+    """An 8-bit gray (H, W) or BGR (H, W, 3) image from ``path``; alpha is dropped."""
+    import cv2
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such image file")
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from exc
+    if not data:
+        raise InputError(f"{p}: empty file, not an image")
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise InputError(f"{p}: not a readable image (expected an 8-bit PNG)")
+    if img.dtype != np.uint8:
+        raise InputError(f"{p}: {img.dtype} pixels, expected an 8-bit image")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[:, :, :3]
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+        raise InputError(f"{p}: unsupported image layout {img.shape}")
+    return np.ascontiguousarray(img)
+
+
+def read_capture(
+    mask1: str | Path,
+    base1: str | Path,
+    mask2: str | Path,
+    base2: str | Path,
+    expected_shape: tuple[int, int] | None = None,
+) -> StereoCapture:
+    """The four images of a stereo capture; all must have one size (and ``expected_shape``)."""
+    paths = [Path(mask1), Path(base1), Path(mask2), Path(base2)]
+    images = [read_image(p) for p in paths]
+    first = images[0].shape[:2]
+    ref = expected_shape if expected_shape is not None else first
+    what = "the calibration's image size" if expected_shape is not None else f"{paths[0]}"
+    for p, img in zip(paths, images, strict=True):
+        if img.shape[:2] != tuple(ref):
+            raise InputError(
+                f"{p}: image is {img.shape[1]}x{img.shape[0]} px, but {what} is "
+                f"{ref[1]}x{ref[0]} px"
+            )
+    gray = any(img.ndim == 2 for img in images)
+    if gray:  # mixed gray/BGR: compare like with like (the laser is green)
+        images = [img if img.ndim == 2 else np.ascontiguousarray(img[:, :, 1]) for img in images]
+    return StereoCapture(images[0], images[1], images[2], images[3])

@@ -1,0 +1,95 @@
+"""Helpers of the daemon tests: value types standing in for device readings, a simple map.
+
+``RecordingMap`` stands in for ``omnid.core.freespace.FreeSpaceMap`` (owned by the map
+engineer) until it lands on main: it marks the classified points of each cloud and records the
+motions it is given, which is all the core's contract needs of it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid, rig_to_robot
+from omnid.core.types import PointClass, PointCloud
+
+
+@dataclass(frozen=True)
+class Tilt:
+    roll_deg: float
+    pitch_deg: float
+    timestamp_s: float
+
+
+@dataclass(frozen=True)
+class Stick:
+    forward: float
+    turn: float
+    timestamp_s: float
+
+
+@dataclass(frozen=True)
+class Status:
+    seq: int
+    left_clocks: int
+    right_clocks: int
+    laser_on: bool
+    faults: int
+    timestamp_s: float
+
+
+class RecordingMap(OccupancyGrid):
+    """Keeps the classified points in continuous robot-frame coordinates and rasterizes them."""
+
+    def __init__(self, settings: GridSettings | None = None) -> None:
+        super().__init__(settings or GridSettings(resolution_mm=50.0))
+        self.moves: list[tuple[float, float, float]] = []
+        self.clouds: list[PointCloud] = []
+        self.points = np.zeros((0, 2))
+        self.point_states = np.zeros(0, np.int8)
+
+    def _raster(self) -> None:
+        self.states[:] = CellState.UNKNOWN
+        for state in (CellState.FREE, CellState.DROPOFF, CellState.OBSTACLE):
+            self.mark(self.points[self.point_states == state], state)
+
+    def update(self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s=None) -> None:
+        self.clouds.append(cloud)
+        code = {
+            PointClass.FLOOR: CellState.FREE,
+            PointClass.OBSTACLE: CellState.OBSTACLE,
+            PointClass.DROPOFF: CellState.DROPOFF,
+        }
+        states = np.array([code[PointClass(int(c))] for c in cloud.classes], np.int8)
+        self.points = np.concatenate([self.points, rig_to_robot(cloud.xyz, rig_x_offset_mm)])
+        self.point_states = np.concatenate([self.point_states, states])
+        self._raster()
+
+    def move(self, dx_mm: float, dy_mm: float, dtheta_rad: float) -> None:
+        self.moves.append((dx_mm, dy_mm, dtheta_rad))
+        x, y = self.points[:, 0] - dx_mm, self.points[:, 1] - dy_mm
+        c, s = np.cos(dtheta_rad), np.sin(dtheta_rad)
+        self.points = np.column_stack([c * x + s * y, -s * x + c * y])
+        self._raster()
+
+
+def floor_cloud(obstacle_x_mm: float | None = None, floor_depth_mm: float = 1100.0) -> PointCloud:
+    """Floor dots on a 50 mm lattice ahead of the rig, optionally a wall row at X = obstacle."""
+    xs = np.arange(-400.0, 3000.0, 50.0)
+    ys = np.arange(-1500.0, 1500.0, 50.0)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    xyz = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, floor_depth_mm)])
+    classes = np.zeros(len(xyz), np.uint8)
+    if obstacle_x_mm is not None:
+        far = xyz[:, 0] >= obstacle_x_mm
+        xyz[far, 2] = floor_depth_mm - 300.0
+        classes[far] = PointClass.OBSTACLE
+    n = len(xyz)
+    return PointCloud(
+        xyz=xyz,
+        cov=np.zeros((n, 3, 3)),
+        pixels=np.zeros((n, 4)),
+        classes=classes,
+        floor_depth_mm=floor_depth_mm,
+    )

@@ -1,0 +1,204 @@
+"""ControlCore: the whole decision chain, clock-injected, and every fault path ending in stop."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from daemon_helpers import RecordingMap, Status, Stick, Tilt, floor_cloud
+
+from omnid.core.kinematics import MM_PER_CLOCK
+from omnid.daemon.config import OmnidConfig
+from omnid.daemon.core import ControlCore, transform_cloud
+from omnid.daemon.rider import JoystickSettings, RiderSettings, TiltSettings
+from omnid.daemon.safety import Reason
+
+DT = 0.02
+
+
+def make_core(**rider) -> tuple[ControlCore, RecordingMap]:
+    cfg = OmnidConfig(
+        rider=RiderSettings(
+            tilt=TiltSettings(dwell_s=0.1), joystick=JoystickSettings(enabled=False), **rider
+        )
+    )
+    m = RecordingMap(cfg.freespace.grid)
+    return ControlCore(cfg, world_map=m), m
+
+
+class Chair:
+    """Wheels follow duty instantly (251 mm/s at duty 1) and count clocks."""
+
+    def __init__(self) -> None:
+        self.travel = [0.0, 0.0]
+        self.seq = 0
+
+    def apply(self, cmd, dt: float) -> None:
+        for i, d in enumerate((cmd.left_duty, cmd.right_duty)):
+            self.travel[i] += d * 251.0 * dt
+
+    def status(self, t: float, faults: int = 0) -> Status:
+        self.seq += 1
+        return Status(
+            self.seq,
+            math.floor(self.travel[0] / MM_PER_CLOCK),
+            math.floor(self.travel[1] / MM_PER_CLOCK),
+            False,
+            faults,
+            t,
+        )
+
+
+def run(
+    core: ControlCore,
+    chair: Chair,
+    t0: float,
+    t1: float,
+    roll: float = -20.0,
+    pitch: float = 0.0,
+    perceive: bool = True,
+    tilt: bool = True,
+    status: bool = True,
+):
+    cmds = []
+    for t in np.arange(t0, t1, DT):
+        t = float(t)
+        if tilt:
+            core.on_tilt(Tilt(roll, pitch, t))
+        if status:
+            core.on_status(chair.status(t))
+        if perceive:
+            core.perception_time_s = t  # a fresh result every cycle (map unchanged)
+        cmd = core.step(t)
+        chair.apply(cmd, DT)
+        cmds.append(cmd)
+    return cmds
+
+
+def free_map(m: RecordingMap) -> None:
+    m.states[:] = 1
+
+
+def test_forward_on_free_floor_ramps_up_then_stops_on_stale_tilt():
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    cmds = run(core, chair, 0.0, 2.0)
+    assert cmds[0].left_duty == 0.0  # dwell + ramp: no jump
+    assert cmds[-1].enable and cmds[-1].left_duty > 0.3
+    assert cmds[-1].left_duty == pytest.approx(cmds[-1].right_duty, abs=0.1)
+    # the tilt sensor falls silent: within the timeout + an emergency ramp, wheels at zero
+    cmds = run(core, chair, 2.0, 3.0, tilt=False)
+    assert core.last_report.reasons[0] is Reason.INPUT_STALE
+    assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
+
+
+def test_missing_or_stale_status_stops_at_once():
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 2.0)
+    t = 2.0 + core.config.control.status_timeout_s + 0.01
+    core.on_tilt(Tilt(-20.0, 0.0, t))
+    cmd = core.step(t)
+    assert (cmd.left_duty, cmd.right_duty, cmd.enable) == (0.0, 0.0, False)
+    assert core.last_report.reasons == (Reason.STATUS_STALE,)
+
+
+def test_control_unit_fault_flag_stops():
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.5)
+    core.on_status(chair.status(1.5, faults=1))
+    cmd = core.step(1.5)
+    assert cmd.left_duty == 0.0 and not cmd.enable
+    assert core.last_report.reasons == (Reason.FAULT,)
+
+
+def test_stale_perception_refuses_forward():
+    core, m = make_core()
+    free_map(m)
+    cmds = run(core, Chair(), 0.0, 1.5, perceive=False)
+    assert all(c.left_duty == 0.0 for c in cmds)
+    assert Reason.PERCEPTION_STALE in core.last_report.reasons
+
+
+def test_obstacle_stops_the_chair_before_it():
+    core, _m = make_core()
+    core = ControlCore(core.config)  # the real free-space map
+    chair = Chair()
+    core.on_perception(floor_cloud(obstacle_x_mm=1200.0), 0.0)  # wall 1500 mm ahead of the axle
+    cmds = run(core, chair, 0.0, 15.0)
+    travelled = 0.5 * (chair.travel[0] + chair.travel[1])
+    s = core.config.safety
+    front = s.footprint_front_mm + s.margin_mm
+    assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
+    assert core.last_report.decision.stopped
+    assert Reason.OBSTACLE_STOP in core.last_report.reasons
+    gap = 1500.0 - front - travelled
+    # stopped inside the stop zone, not touching the wall (map cells and clocks: ±2 cells)
+    assert 0.0 < gap <= s.stop_distance_mm + 2 * core.grid.settings.resolution_mm
+
+
+def test_exception_in_cycle_fails_safe(caplog):
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.5)
+    core.grid.states = None  # break the map: the safety check raises inside the cycle
+    cmd = core.step(1.52)
+    assert (cmd.left_duty, cmd.right_duty, cmd.enable) == (0.0, 0.0, False)
+    assert core.fault_count == 1 and "cycle_exception" in caplog.text
+
+
+def test_status_motion_moves_the_map():
+    core, m = make_core()
+    chair = Chair()
+    chair.travel = [0.0, 0.0]
+    core.on_status(chair.status(0.0))
+    chair.travel = [10 * MM_PER_CLOCK, 10 * MM_PER_CLOCK]
+    core.on_status(chair.status(0.1))
+    assert m.moves == [pytest.approx((10 * MM_PER_CLOCK, 0.0, 0.0))]
+
+
+def test_late_perception_is_compensated_by_odometry():
+    core, m = make_core()
+    chair = Chair()
+    core.on_status(chair.status(0.0))
+    chair.travel = [20 * MM_PER_CLOCK] * 2  # 628 mm forward after the capture
+    core.on_status(chair.status(0.5))
+    cloud = floor_cloud(obstacle_x_mm=2000.0)
+    core.on_perception(cloud, capture_time_s=0.0)
+    got = m.clouds[-1]
+    assert got.xyz[:, 0] == pytest.approx(cloud.xyz[:, 0] - 20 * MM_PER_CLOCK)
+    assert core.perception_time_s == 0.0
+
+
+def test_transform_cloud_rotation_keeps_world_points():
+    cloud = floor_cloud()
+    moved = transform_cloud(cloud, 0.0, 0.0, math.pi / 2, rig_x_offset_mm=0.0)
+    # robot turned left by 90°: a point ahead (x) is now on the right (y < 0 → rig Y > 0)
+    i = np.argmax(cloud.xyz[:, 0])
+    assert moved.xyz[i, 1] == pytest.approx(cloud.xyz[i, 0])
+    assert moved.xyz[i, 0] == pytest.approx(-cloud.xyz[i, 1])
+
+
+def test_joystick_source_drives_turn():
+    core, m = make_core()
+    cfg = OmnidConfig(
+        rider=RiderSettings(
+            tilt=TiltSettings(enabled=False), joystick=JoystickSettings(enabled=True)
+        )
+    )
+    core = ControlCore(cfg, world_map=m)
+    free_map(m)
+    chair = Chair()
+    for t in np.arange(0.0, 1.0, DT):
+        core.on_joystick(Stick(0.0, 1.0, float(t)))
+        core.on_status(chair.status(float(t)))
+        core.perception_time_s = float(t)
+        cmd = core.step(float(t))
+        chair.apply(cmd, DT)
+    assert cmd.left_duty < 0 < cmd.right_duty  # turning left in place

@@ -1,0 +1,148 @@
+"""Safety zones on synthetic grids: stop, slow, approach, drop-offs, unknown space, stale map."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid
+from omnid.daemon.safety import Reason, ReasonLog, SafetyLayer, SafetySettings
+
+S = SafetySettings(
+    footprint_front_mm=300.0,
+    footprint_rear_mm=700.0,
+    footprint_width_mm=600.0,
+    margin_mm=0.0,
+    stop_distance_mm=150.0,
+    slow_distance_mm=600.0,
+    slow_speed_mm_s=100.0,
+    approach_time_s=2.0,
+    brake_decel_mm_s2=600.0,
+)
+
+
+def free_grid() -> OccupancyGrid:
+    g = OccupancyGrid(GridSettings(resolution_mm=25.0))
+    g.states[:] = CellState.FREE
+    return g
+
+
+def wall(g: OccupancyGrid, x_mm: float, state: CellState = CellState.OBSTACLE) -> None:
+    """A wall across the path, its near face at x_mm (robot frame)."""
+    xs, ys = g.cell_centers()
+    i = (xs > x_mm) & (xs < x_mm + 100)
+    g.states[np.ix_(i, np.abs(ys) < 1000)] = state
+
+
+def test_free_floor_allows_full_speed():
+    d = SafetyLayer(S).check(free_grid(), 250.0, 0.0, perception_age_s=0.1)
+    assert d.scale == 1.0 and d.reasons == () and math.isinf(d.clearance_mm)
+
+
+def test_clearance_is_distance_from_bumper_to_wall():
+    g = free_grid()
+    wall(g, 1300.0)  # bumper at x = 300: 1000 mm free
+    clearance, state, _ = SafetyLayer(S).sweep(g, 200.0, 0.0)
+    assert clearance == pytest.approx(1000.0, abs=25.0)  # one cell
+    assert state is CellState.OBSTACLE
+
+
+def test_stop_zone_refuses_forward_but_allows_reverse():
+    g = free_grid()
+    wall(g, 400.0)  # 100 mm ahead of the bumper
+    layer = SafetyLayer(S)
+    d = layer.check(g, 200.0, 0.0, perception_age_s=0.1)
+    assert d.stopped and Reason.OBSTACLE_STOP in d.reasons
+    back = layer.check(g, -100.0, 0.0, perception_age_s=0.1)
+    assert back.scale == 1.0
+
+
+def test_dropoff_is_an_obstacle_with_its_own_reason():
+    g = free_grid()
+    wall(g, 380.0, CellState.DROPOFF)
+    d = SafetyLayer(S).check(g, 200.0, 0.0, perception_age_s=0.1)
+    assert d.stopped and d.reasons == (Reason.DROPOFF_STOP,)
+
+
+def test_slow_zone_and_approach_cap():
+    g = free_grid()
+    wall(g, 800.0)  # 500 mm clearance: inside the slow zone
+    d = SafetyLayer(S).check(g, 250.0, 0.0, perception_age_s=0.1)
+    assert Reason.SLOW_ZONE in d.reasons
+    room = d.clearance_mm - S.stop_distance_mm
+    assert d.v_mm_s == pytest.approx(min(100.0, room / 2.0), rel=1e-9)
+    g2 = free_grid()
+    wall(g2, 1300.0)  # 1000 mm: beyond the slow zone, approach limits to room / 2 s
+    d2 = SafetyLayer(S).check(g2, 600.0, 0.0, perception_age_s=0.1)
+    assert d2.reasons == (Reason.APPROACH,)
+    assert d2.v_mm_s == pytest.approx((d2.clearance_mm - 150.0) / 2.0)
+
+
+def test_arc_misses_wall_that_straight_line_hits():
+    g = free_grid()
+    xs, ys = g.cell_centers()
+    # a post 1 m straight ahead
+    g.states[np.ix_((xs > 1200) & (xs < 1400), np.abs(ys) < 150)] = CellState.OBSTACLE
+    layer = SafetyLayer(S)
+    straight, _, _ = layer.sweep(g, 200.0, 0.0)
+    # sharp left arc (R = 400 mm): turns away well before the post
+    arc, _, _ = layer.sweep(g, 200.0, 0.5)
+    assert straight < 1000.0
+    assert arc > straight + 200.0
+
+
+def test_turn_in_place_sees_obstacle_beside_the_chair():
+    g = free_grid()
+    xs, ys = g.cell_centers()
+    # a box beside the rear corner: inside the turning circle, outside the footprint
+    g.states[np.ix_((xs > -700) & (xs < -500), (ys > 320) & (ys < 420))] = CellState.OBSTACLE
+    layer = SafetyLayer(S)
+    d = layer.check(g, 0.0, -0.5, perception_age_s=0.1)  # turning right swings the rear left
+    assert d.stopped
+    assert layer.sweep(g, 0.0, 0.0)[0] == math.inf  # standing still checks nothing
+
+
+def test_obstacle_under_own_footprint_is_ignored():
+    g = free_grid()
+    g.states[g.cell_index([[0.0, 0.0]])[0], g.cell_index([[0.0, 0.0]])[1]] = CellState.OBSTACLE
+    assert SafetyLayer(S).check(g, 200.0, 0.0, 0.1).scale == 1.0
+
+
+def test_unknown_ahead_slows():
+    g = OccupancyGrid(GridSettings(resolution_mm=25.0))  # all unknown
+    d = SafetyLayer(S).check(g, 250.0, 0.0, perception_age_s=0.1)
+    assert d.reasons == (Reason.UNKNOWN_AHEAD,)
+    assert d.v_mm_s == pytest.approx(S.unknown_speed_mm_s)
+
+
+def test_stale_or_missing_perception_forbids_forward_only():
+    layer = SafetyLayer(S)
+    g = free_grid()
+    for age in (None, 5.0):
+        d = layer.check(g, 200.0, 0.1, perception_age_s=age)
+        assert d.stopped and Reason.PERCEPTION_STALE in d.reasons
+    assert layer.check(g, 0.0, 0.3, perception_age_s=None).scale == 1.0
+    assert layer.check(g, -100.0, 0.0, perception_age_s=None).scale == 1.0
+
+
+def test_most_restrictive_wins():
+    g = OccupancyGrid(GridSettings(resolution_mm=25.0))
+    wall(g, 400.0)
+    d = SafetyLayer(S).check(g, 250.0, 0.0, perception_age_s=0.1)
+    assert d.stopped and Reason.OBSTACLE_STOP in d.reasons
+
+
+def test_nan_request_is_refused():
+    d = SafetyLayer(S).check(free_grid(), float("nan"), 0.0, 0.1)
+    assert d.stopped and d.reasons == (Reason.FAULT,)
+
+
+def test_reason_log_is_rate_limited(caplog):
+    rl = ReasonLog(logging.getLogger("t"), interval_s=2.0)
+    with caplog.at_level(logging.WARNING):
+        sent = [rl.log("obstacle_stop", "x", t) for t in np.arange(0.0, 5.0, 0.02)]
+    assert sum(sent) == 3 and rl.suppressed == len(sent) - 3
+    assert len(caplog.records) == 3

@@ -1,0 +1,146 @@
+"""`omnid calibrate` and `omnid perceive` through the real console entry, on rendered PNGs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from match_helpers import misaligned_rig
+
+from omnid.cli import main
+from omnid.core.laser import DotPattern
+from omnid.core.types import StereoCapture
+from omnid.sim.render import render_capture
+
+H = 1100.0
+
+
+def write_capture(cap: StereoCapture, folder: Path, prefix: str) -> list[str]:
+    """Write the capture as PNGs; returns the four --mask1 ... --base2 arguments."""
+    args = []
+    for name in ("mask1", "base1", "mask2", "base2"):
+        path = folder / f"{prefix}_{name}.png"
+        assert cv2.imwrite(str(path), getattr(cap, name))
+        args += [f"--{name}", str(path)]
+    return args
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("cli")
+    rig = misaligned_rig()
+    floor = write_capture(render_capture(rig, DotPattern().on_plane(H), seed=1), folder, "floor")
+    out = folder / "calib.yaml"
+    assert main(["calibrate", *floor, "--floor-depth-mm", "1100", "--out", str(out)]) == 0
+    # a scene: floor with a raised block ahead (box top 300 mm high)
+    pat = DotPattern()
+    sl = pat.slopes()
+    box = (sl[:, 0] > 0.8) & (sl[:, 0] < 1.3) & (np.abs(sl[:, 1]) < 0.35)
+    depth = np.where(box, 800.0, H)
+    scene = render_capture(rig, np.column_stack([sl * depth[:, None], depth]), seed=2)
+    write_capture(scene, folder, "scene")
+    return folder, out
+
+
+def scene_args(folder: Path, prefix: str = "scene") -> list[str]:
+    return [
+        a
+        for n in ("mask1", "base1", "mask2", "base2")
+        for a in (f"--{n}", str(folder / f"{prefix}_{n}.png"))
+    ]
+
+
+@pytest.mark.parametrize("method", ["best", "thesis"])
+def test_perceive_json(calibrated, capsys: pytest.CaptureFixture[str], method: str) -> None:
+    folder, calib = calibrated
+    capsys.readouterr()
+    argv = ["perceive", "--calib", str(calib), *scene_args(folder), "--method", method, "--json"]
+    assert main(argv) == 0
+    doc = json.loads(capsys.readouterr().out)  # exactly one JSON object
+    pts = doc["points"]
+    assert len(pts) > (380 if method == "best" else 50)
+    for p in pts:
+        assert set(p) >= {"x", "y", "z", "h", "r1", "c1", "r2", "c2", "class"}
+        assert p["class"] in ("floor", "obstacle", "dropoff")
+        assert p["h"] == pytest.approx(H - p["z"])
+    if method == "best":
+        obstacles = [p for p in pts if p["class"] == "obstacle"]
+        floor = [p for p in pts if p["class"] == "floor"]
+        assert len(obstacles) > 25 and len(floor) > 250
+        assert np.median([p["h"] for p in obstacles]) == pytest.approx(300.0, abs=10.0)
+        assert np.median([abs(p["h"]) for p in floor]) < 5.0
+
+
+def test_calibrate_refuses_a_capture_without_dots(tmp_path: Path, capsys) -> None:
+    cap = render_capture(misaligned_rig(), np.zeros((0, 3)), seed=3)
+    args = write_capture(cap, tmp_path, "dark")
+    out = tmp_path / "calib.yaml"
+    code = main(["calibrate", *args, "--floor-depth-mm", "1100", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code != 0 and not out.exists()
+    assert "dots" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def _bad_perceive(calibrated, tmp_path: Path, capsys, replace: str, content: bytes | np.ndarray):
+    folder, calib = calibrated
+    args = scene_args(folder)
+    bad = tmp_path / "bad.png"
+    if isinstance(content, bytes):
+        bad.write_bytes(content)
+    else:
+        cv2.imwrite(str(bad), content)
+    args[args.index(f"--{replace}") + 1] = str(bad)
+    code = main(["perceive", "--calib", str(calib), *args, "--json"])
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert code != 0
+    assert captured.out == ""
+    assert "Traceback" not in err and len(err.splitlines()) == 1
+    assert str(bad) in err
+    return err
+
+
+@pytest.mark.parametrize(
+    ("replace", "content"),
+    [
+        ("base2", b""),  # empty file
+        ("mask1", b"this is not a PNG"),  # not an image
+        ("base1", np.zeros((240, 320), np.uint8)),  # wrong size
+        ("mask2", np.zeros((480, 600), np.uint8)),  # mismatched with the others
+    ],
+)
+def test_bad_input_is_one_line_naming_the_file(calibrated, tmp_path, capsys, replace, content):
+    _bad_perceive(calibrated, tmp_path, capsys, replace, content)
+
+
+def test_missing_file_named(calibrated, tmp_path: Path, capsys) -> None:
+    folder, calib = calibrated
+    args = scene_args(folder)
+    args[args.index("--base1") + 1] = str(tmp_path / "nope.png")
+    assert main(["perceive", "--calib", str(calib), *args]) != 0
+    assert "nope.png" in capsys.readouterr().err
+
+
+def test_all_black_capture_gives_zero_points(calibrated, tmp_path: Path, capsys) -> None:
+    _, calib = calibrated
+    black = np.zeros((480, 640), np.uint8)
+    args = []
+    for name in ("mask1", "base1", "mask2", "base2"):
+        p = tmp_path / f"{name}.png"
+        cv2.imwrite(str(p), black)
+        args += [f"--{name}", str(p)]
+    capsys.readouterr()
+    assert main(["perceive", "--calib", str(calib), *args, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["points"] == []
+
+
+def test_bad_calibration_file_names_key(calibrated, tmp_path: Path, capsys) -> None:
+    folder, calib = calibrated
+    bad = tmp_path / "calib.yaml"
+    bad.write_text(calib.read_text().replace("format_version: 1", "format_version: 9"))
+    assert main(["perceive", "--calib", str(bad), *scene_args(folder)]) != 0
+    err = capsys.readouterr().err
+    assert "format_version" in err and str(bad) in err
