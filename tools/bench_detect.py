@@ -102,9 +102,21 @@ def scene() -> tuple[StereoRig, np.ndarray]:
 
 
 def count_mode(which: str, n: int, before: str) -> int:
-    """Run ``n`` best detections of one camera (for instruction counting under callgrind)."""
+    """Run ``n`` best detections of one camera (``which`` = now | before) or ``n`` realistic
+    stereo renders (render | render_before), for instruction counting under callgrind."""
     cv2.setNumThreads(1)
     rig, xyz = scene()
+    if which.startswith("render"):
+        if which == "render_before":
+            mod = load_module_at(before, "omnid/sim/render.py", "render_before")
+            assert mod is not None
+            opts, render = mod.RenderOptions.realistic(), mod.render_capture
+        else:
+            opts, render = RenderOptions.realistic(), render_capture
+        render(rig, xyz, opts, seed=0)
+        for _ in range(n):
+            render(rig, xyz, opts, seed=0)
+        return 0
     cap = render_capture(rig, xyz, RenderOptions.realistic(), seed=3)
     fn = detect_dots
     if which == "before":
@@ -282,14 +294,17 @@ def main() -> int:
             f"best {t_best:.2f} ms (min): transcription / best {t_slow / t_best:.0f}x"
         )
     if args.instructions:
-        now = instructions("now", args.before)
-        before = instructions("before", args.before) if old_detect is not None else None
-        if now is None:
-            print("\ninstructions: valgrind not available")
-        else:
-            line = (
-                f"\ninstructions per best detection (one camera, callgrind): now {now / 1e6:.1f} M"
-            )
+        print()
+        for label, which, which_before, n in (
+            ("best detection, one camera", "now", "before", 10),
+            ("realistic render, both cameras", "render", "render_before", 3),
+        ):
+            now = instructions(which, args.before, n)
+            if now is None:
+                print("instructions: valgrind not available")
+                break
+            line = f"instructions per {label} (callgrind): now {now / 1e6:.1f} M"
+            before = instructions(which_before, args.before, n) if old_detect else None
             if before is not None:
                 line += f", before {before / 1e6:.1f} M, before/now {before / now:.2f}x"
             print(line)
