@@ -54,19 +54,21 @@ def make_core(rig_x_offset_mm: float = 300.0, joystick: bool = False) -> Any:
 
 def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int:
     """Fast-mode run of ``args`` (course, duration_s, perception, seed, out, quiet)."""
-    from omnid.sim.course import demo_rider, get_course
+    from omnid.sim.course import demo_joystick, get_course
     from omnid.sim.report import summary_lines, write_report
     from omnid.sim.simulator import SimSettings, Simulator
 
     course = get_course(args.course)
-    rider = None
+    joystick = None
     notes = [f"Course `{course.name}`, perception `{args.perception}`, seed {args.seed}."]
     if controller is None:
-        controller = make_core()
-        rider = demo_rider()
+        controller = make_core(joystick=True)
+        joystick = demo_joystick()
         notes.append(
-            "Driven by the daemon core (`ControlCore`) with the scripted demo rider "
-            "(head tilts: forward towards the stairs, left, forward towards box 3, stop)."
+            "Driven by the daemon core (`ControlCore`) with the scripted demo rider on the "
+            "joystick: forward through the wide passage, the narrow passage (refused), back "
+            "off, turn right, forward to the stairs (refused), turn right towards box 3, seen "
+            "on the way and now beside the chair outside the laser's field (refused)."
         )
     else:
         notes.append("Open loop: fixed duties, no daemon — the chair is unguarded.")
@@ -82,15 +84,17 @@ def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int
         )
 
     settings = SimSettings(perception=args.perception, seed=args.seed)
-    sim = Simulator(course, controller, settings=settings, rider=rider, progress=progress)
+    sim = Simulator(course, controller, settings=settings, joystick=joystick, progress=progress)
     if not args.quiet:
         print(f"{title}: {args.duration_s:.0f} s in course '{course.name}'", flush=True)
     result = sim.run(args.duration_s)
-    path = write_report(args.out, course, result, title, notes, sim.chair.settings)
+    path = write_report(
+        args.out, course, result, title, notes, sim.chair.settings, story=joystick is not None
+    )
     for line in summary_lines(result):
         print(line.replace("- ", "  ", 1))
     print(f"report: {path}  (drawing: {path.parent / 'course.png'})")
-    if controller is not None and rider is not None and (result.collisions or result.falls):
+    if joystick is not None and (result.collisions or result.falls):
         print(
             "the simulated chair collided or fell: the daemon failed this course", file=sys.stderr
         )
