@@ -190,6 +190,9 @@ class PerceptionWorker:
     def pid(self) -> int | None:
         return None if self._proc is None else int(self._proc.pid)
 
+    def _encode_and_request(self, capture: StereoCapture) -> bytes:
+        return self._blocking_request(encode_request(capture))  # 1.2 MB copied off the loop
+
     def _blocking_request(self, payload: bytes) -> bytes:
         """In the I/O thread: (re)start the child if needed, send, wait with the timeout."""
         if self._proc is None or not self._proc.is_alive():
@@ -242,10 +245,9 @@ class PerceptionWorker:
         """The cloud of ``capture``; :class:`PerceptionFailed` on any failure (never hangs
         longer than ``timeout_s`` once the worker is up)."""
         self.requests += 1
-        payload = encode_request(capture)
         loop = asyncio.get_running_loop()
         try:
-            reply = await loop.run_in_executor(self._pool, self._blocking_request, payload)
+            reply = await loop.run_in_executor(self._pool, self._encode_and_request, capture)
         except PerceptionFailed as exc:
             self.failures += 1
             self.last_error = str(exc)

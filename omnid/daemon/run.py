@@ -113,6 +113,9 @@ class Daemon:
         self.joystick: Any = None
         self.worker: Any = None
         self._stop = asyncio.Event()
+        self._wake = asyncio.Event()  # set by a stop request or a rider's new command
+        self._kicked = False  # a rider's new command: run a cycle now, send it at once
+        self._last_kick_s = 0.0
         self._closers: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._last_cycle_s = time.monotonic()
@@ -127,7 +130,16 @@ class Daemon:
         self.core.on_status(status)
 
     def _on_tilt(self, reading: Any) -> None:
+        before = self.core.mux.tilt.active
         self.core.on_tilt(reading)
+        if self.core.mux.tilt.active is not before:
+            self._kick()
+
+    def _kick(self) -> None:
+        """A rider's command changed: the control loop runs an extra cycle at once and the link
+        sends its result at once (rider → wire need not wait for two 20 ms grids)."""
+        self._kicked = True
+        self._wake.set()
 
     async def _start_inputs(self) -> None:
         cfg = self.config
@@ -136,6 +148,7 @@ class Daemon:
 
             def on_key(cmd: Any) -> None:
                 self.core.on_key(cmd.command, cmd.timestamp_s)
+                self._kick()
 
             server = TeleopServer(cfg.teleop, on_command=on_key)
             Path(cfg.teleop.socket_path).parent.mkdir(parents=True, exist_ok=True)
@@ -177,7 +190,7 @@ class Daemon:
                 await asyncio.wait_for(self._stop.wait(), timeout=1.0)
 
     # ---- the control loop ---------------------------------------------------------------
-    def _cycle(self, now: float) -> None:
+    def _cycle(self, now: float, urgent: bool = False) -> None:
         link_ok = self.link.status is not None
         if link_ok != self._link_was_ok:
             self._link_was_ok = link_ok
@@ -194,7 +207,7 @@ class Daemon:
             if reading is not None:
                 self.core.on_joystick(reading)
         cmd = self.core.step(now)
-        self.link.set_command(cmd)
+        self.link.set_command(cmd, urgent=urgent)
 
     async def control_loop(self) -> None:
         period = self.config.control.period_s
@@ -207,11 +220,19 @@ class Daemon:
             deadline = t0 + k * period
             now = time.monotonic()
             if now < deadline:
-                try:
-                    await asyncio.wait_for(self._stop.wait(), timeout=deadline - now)
+                if not self._kicked:
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(self._wake.wait(), timeout=deadline - now)
+                self._wake.clear()
+                if self._stop.is_set():
                     break
-                except TimeoutError:
-                    pass
+                now = time.monotonic()
+                if self._kicked and now < deadline:
+                    self._kicked = False
+                    if now - self._last_kick_s >= 0.005:  # a flood of lines: grid only
+                        self._last_kick_s = now
+                        self._cycle(now, urgent=True)
+                    continue  # then on to the same deadline
                 now = time.monotonic()
             late = now - deadline
             if late > period:  # more than one period behind: skip, do not bunch cycles
@@ -385,12 +406,23 @@ class Daemon:
 
     def request_stop(self) -> None:
         self._stop.set()
+        self._wake.set()
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
         loop.add_signal_handler(signal.SIGHUP, self.reload)
+        if self.config.perception.enabled:
+            # heavy imports now, before the control loop runs (an import inside a task would
+            # hold the event loop for hundreds of ms)
+            import omnid.core.pipeline
+            import omnid.daemon.perception_worker
+            import omnid.devices.camera  # noqa: F401
+        import gc
+
+        gc.collect()
+        gc.freeze()  # start-up objects leave the collector's scans: shorter GC pauses in the loop
         await self.link.start()
         try:
             await self._start_inputs()
@@ -435,9 +467,9 @@ class Daemon:
         log.info("omnid stopped; wheels at zero")
 
 
-def main(config_path: str) -> int:
+def main(config_path: str, stats_out: str | None = None) -> int:
     """Load the configuration and calibration (errors name file and key) and run until
-    SIGTERM."""
+    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit."""
     holder = ConfigHolder(config_path)
     daemon_ref: list[Daemon] = []
 
@@ -460,4 +492,9 @@ def main(config_path: str) -> int:
             st.perception_cycles,
             st.perception_errors,
         )
+        if stats_out:
+            import dataclasses
+            import json
+
+            Path(stats_out).write_text(json.dumps(dataclasses.asdict(st)))
     return rc
