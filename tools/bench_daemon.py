@@ -185,11 +185,13 @@ def main() -> None:
         f"link 20 ms"
     )
     pl, ps, cs = st["perception_latency_s"], st["perception_s"], st["capture_s"]
+    mb = st["mask_to_base_s"]
     print(
         f"perception: base frame → cloud in the map p50 {pct(pl, 50):.1f} ms  p99 "
         f"{pct(pl, 99):.1f} ms (+ ≤ {period_ms:.0f} ms to the next safety decision); "
         f"perceive in the worker p50 {pct(ps, 50):.1f} ms  p99 {pct(ps, 99):.1f} ms; "
-        f"capture (laser off → base pair) p50 {pct(cs, 50):.1f} ms  p99 {pct(cs, 99):.1f} ms"
+        f"capture (laser off → base pair) p50 {pct(cs, 50):.1f} ms  p99 {pct(cs, 99):.1f} ms; "
+        f"mask → base p50 {pct(mb, 50):.1f} ms  p99 {pct(mb, 99):.1f} ms"
     )
 
 

@@ -59,6 +59,7 @@ class LoopStats:
     perception_s: list[float] = field(default_factory=list)  # perceive in the worker, wall
     perception_latency_s: list[float] = field(default_factory=list)  # base frame → in the map
     capture_s: list[float] = field(default_factory=list)  # laser off → base pair in hand
+    mask_to_base_s: list[float] = field(default_factory=list)  # mask pair → base pair
 
     def record(self, late_s: float) -> None:
         self.cycles += 1
@@ -278,6 +279,18 @@ class Daemon:
             await asyncio.sleep(0.003)
         return False
 
+    async def _slow_for_capture(self, cap_mm_s: float) -> None:
+        """``limit`` policy: the core already caps the speed; wait (≤ 1 s) until the commanded
+        speed is under the cap, plus one motor time constant, so the floor texture moves
+        ≤ 0.35 px between mask and base (tools/eval_capture_motion.py)."""
+        ramp = self.core.motion.ramp
+        if abs(ramp.v_mm_s) <= cap_mm_s + 1e-6:
+            return
+        end = time.monotonic() + 1.0
+        while abs(self.core.motion.ramp.v_mm_s) > cap_mm_s + 1e-6 and time.monotonic() < end:
+            await asyncio.sleep(self.config.control.period_s)
+        await asyncio.sleep(0.15)
+
     async def _read(self, camera: Any) -> tuple[Any, Any, float]:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
@@ -291,6 +304,8 @@ class Daemon:
         t0 = time.monotonic()
         try:
             self.core.capturing = True
+            if p.capture_policy == "limit":
+                await self._slow_for_capture(p.capture_speed_mm_s)
             self.core.laser_on = False
             if not await self._wait_laser(False, p.laser_timeout_s):
                 raise TimeoutError(
@@ -298,7 +313,7 @@ class Daemon:
                 )
             if p.flush_frames:
                 await camera.flush()
-            m1, m2, _ = await self._read(camera)
+            m1, m2, t_mask = await self._read(camera)
             self.core.laser_on = True
             if not await self._wait_laser(True, p.laser_timeout_s):
                 raise TimeoutError(
@@ -311,6 +326,7 @@ class Daemon:
             self.core.capturing = False
             self.core.laser_on = True
         self.stats.note(self.stats.capture_s, time.monotonic() - t0)
+        self.stats.note(self.stats.mask_to_base_s, t_base - t_mask)
         return StereoCapture(m1, b1, m2, b2, timestamp_s=t_base)
 
     def _perception_error(self, what: str, exc: BaseException) -> None:
