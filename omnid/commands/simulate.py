@@ -46,9 +46,10 @@ def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument(
         "--perception",
         choices=["truth", "pipeline", "off"],
-        default="truth",
-        help="truth: cast laser dots with their true classes (fast); pipeline: rendered images "
-        "through the vision pipeline; off: no perception (default truth)",
+        default="pipeline",
+        help="pipeline: rendered mask/base frames of the misaligned rig, calibrated at install, "
+        "through omnid.core.pipeline.perceive (default); truth: cast laser dots with their true "
+        "classes (fast); off: no perception",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (0)")
     p.add_argument("--out", default=default_out, help=f"report directory ({default_out})")

@@ -28,11 +28,18 @@ class PerceptionSettings:
     detection_method: Literal["thesis", "best"] | None = "best"
     detection: DetectionParams = field(default_factory=DetectionParams)
     matching: MatchSettings = field(default_factory=MatchSettings)
-    pixel_sigma_px: float = 0.3  # image noise of a dot centre, for the covariance
+    # Image noise of a dot centre for the covariance, px. None: for ``best`` the calibration's
+    # row residual (the dots' real scatter on this rig), at least 0.1 px; for ``thesis``
+    # 1/√12 ≈ 0.29 px (its centres are whole pixels).
+    pixel_sigma_px: float | None = None
     classify: Any = None  # omnid.core.classify.ClassifySettings, or None for its defaults
 
     def __post_init__(self) -> None:
-        require(self.pixel_sigma_px > 0, "pixel_sigma_px", "must be positive")
+        require(
+            self.pixel_sigma_px is None or self.pixel_sigma_px > 0,
+            "pixel_sigma_px",
+            "must be positive",
+        )
 
 
 def perceive(
@@ -62,7 +69,11 @@ def perceive(
     H = calib.floor_depth_mm
     if len(pixels) == 0:
         return PointCloud(floor_depth_mm=H)
-    xyz, cov = triangulate(calib.rig, pixels, method, s.pixel_sigma_px)
+    sigma = s.pixel_sigma_px
+    if sigma is None:
+        row_rms = float(calib.residuals.get("row_rms_px", 0.0))
+        sigma = max(0.1, row_rms) if method == "best" else 1.0 / np.sqrt(12.0)
+    xyz, cov = triangulate(calib.rig, pixels, method, sigma)
     ok = np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 0)
     cloud = PointCloud(
         xyz=xyz[ok],

@@ -20,6 +20,8 @@ therefore vouches for the reading while the device is open and healthy (the read
 refreshes its liveness every ``stale_after_s / 2``, and ``latest.timestamp_s`` is that time);
 an unplugged device (read error, EOF) makes ``latest`` None at once, and a reader task that
 stops running makes it None after ``stale_after_s``; the daemon's mux treats None as stop.
+After a loss the link reopens the device with back-off (``reconnect_initial_s`` doubling up to
+``reconnect_max_s``); a reopened stick counts as centred until it reports a new position.
 """
 
 from __future__ import annotations
@@ -82,6 +84,8 @@ class JoystickSettings:
     forward_sign: int = -1  # stick pushed away gives low Y on most devices
     turn_sign: int = -1  # stick pushed right gives high X; turn + is left
     stale_after_s: float = 0.2
+    reconnect_initial_s: float = 0.1  # after an unplug, retry opening with this back-off …
+    reconnect_max_s: float = 2.0  # … doubling up to this
     hid_x_byte: int = 0
     hid_y_byte: int = 1
     hid_report_size: int = 64
@@ -97,6 +101,12 @@ class JoystickSettings:
         require(self.forward_sign in (-1, 1), "forward_sign", "must be 1 or -1")
         require(self.turn_sign in (-1, 1), "turn_sign", "must be 1 or -1")
         require(self.stale_after_s > 0.0, "stale_after_s", "must be > 0")
+        require(self.reconnect_initial_s > 0.0, "reconnect_initial_s", "must be > 0")
+        require(
+            self.reconnect_max_s >= self.reconnect_initial_s,
+            "reconnect_max_s",
+            "must be ≥ reconnect_initial_s",
+        )
 
 
 def normalise(raw: float, lo: float, hi: float) -> float:
@@ -201,8 +211,8 @@ class JoystickLink:
     """Asyncio reader of one joystick; ``latest`` is the current reading or None.
 
     ``await start()`` opens the device (raises DeviceError naming it), ``await stop()`` closes
-    it. Errors while running mark the link disconnected (``latest`` → None, logged); call
-    ``start()`` again to reopen.
+    it. Errors while running mark the link disconnected (``latest`` → None, logged) and the
+    link reopens the device by itself with back-off.
     """
 
     def __init__(
@@ -218,6 +228,7 @@ class JoystickLink:
         self.events = 0
         self.errors = 0
         self.dropped_syncs = 0
+        self.reconnects = 0
         parts = urlsplit(self.settings.url)
         if parts.scheme not in ("evdev", "hid"):
             raise ConfigError(f"joystick.url: unknown scheme {parts.scheme!r} (known: evdev, hid)")
@@ -237,12 +248,37 @@ class JoystickLink:
     async def start(self) -> None:
         if self._task is not None and not self._task.done():
             return
+        runner = await self._opener()
+        self._task = asyncio.create_task(self._supervise(runner), name="omnid-joystick")
+
+    async def _opener(self) -> Callable[[], Any]:
         opener = self._open_evdev if self._scheme == "evdev" else self._open_hid
+        # a (re)opened stick counts as centred until it reports otherwise: a stick held over
+        # a replug must not start the chair without a fresh movement
+        self.mapper = AxisMapper(self.settings)
         runner = await opener()
         self.connected = True
         self._alive_s = self.clock()
         self._reading = self.mapper.reading(self.clock())
-        self._task = asyncio.create_task(runner(), name="omnid-joystick")
+        return runner
+
+    async def _supervise(self, runner: Callable[[], Any]) -> None:
+        """Run the reader; after a loss, reopen with exponential back-off until stopped."""
+        s = self.settings
+        while True:
+            await runner()
+            backoff = s.reconnect_initial_s
+            while True:
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, s.reconnect_max_s)
+                try:
+                    runner = await self._opener()
+                except DeviceError as exc:
+                    log.debug("joystick reopen failed: %s", exc)
+                    continue
+                self.reconnects += 1
+                log.info("joystick %s back", self._target)
+                break
 
     async def stop(self) -> None:
         if self._task is not None:

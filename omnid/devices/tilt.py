@@ -120,6 +120,7 @@ class TiltHealth:
     requests: int = 0
     replies_ok: int = 0
     timeouts: int = 0
+    consecutive_timeouts: int = 0
     checksum_errors: int = 0
     range_errors: int = 0
     port_errors: int = 0
@@ -213,6 +214,7 @@ class TiltSensorLink:
         self._health = TiltHealth()
         self._reading: TiltReading | None = None
         self._was_valid = False
+        self._silent_limit = max(1, math.ceil(s.stale_after_s / s.poll_period_s))
 
     # -- public API ----------------------------------------------------------------------
     async def start(self) -> None:
@@ -364,6 +366,7 @@ class TiltSensorLink:
                 f = frames[-1]
                 self._reading = TiltReading(f.roll_deg, f.pitch_deg, self._clock())
                 h.replies_ok += 1
+                h.consecutive_timeouts = 0
                 if not self._was_valid:
                     self._was_valid = True
                     log.info(
@@ -378,4 +381,13 @@ class TiltSensorLink:
                         log.exception("tilt sensor on_reading callback failed")
                 return
         h.timeouts += 1
+        h.consecutive_timeouts += 1
         h.last_error = f"no valid reply within {self.settings.request_timeout_s * 1000:.0f} ms"
+        if self._reading is None and h.consecutive_timeouts == self._silent_limit:
+            # never had a reading: the stale warning would never fire, so say it here
+            log.warning(
+                "tilt sensor on %s not answering (%d requests, %s): head input ignored",
+                t.name,
+                h.consecutive_timeouts,
+                h.last_error,
+            )

@@ -134,3 +134,42 @@ def test_missing_event_device_names_it():
             await link.start()
 
     asyncio.run(go())
+
+
+def test_unplugged_joystick_reconnects_centred(tmp_path):
+    """A pty behind a re-pointed link path stands in for /dev/input/by-id/...-event-joystick."""
+    from omnid.devices.pty import PtyPort
+
+    port = PtyPort(lambda data: None, link_path=tmp_path / "event-joystick", name="joy")
+    port.open()
+    s = JoystickSettings(
+        url=f"evdev://{port.path}",
+        axis_min=-100,
+        axis_max=100,
+        stale_after_s=0.1,
+        reconnect_initial_s=0.02,
+        reconnect_max_s=0.05,
+    )
+
+    async def go():
+        link = JoystickLink(s)
+        await link.start()
+        port.write(pack_event(EV_ABS, ABS_Y, -100) + pack_event(EV_SYN, SYN_REPORT, 0))
+        await _until(lambda: link.latest is not None and link.latest.forward == 1.0)
+        port.unplug()
+        await _until(lambda: link.latest is None)
+        await asyncio.sleep(0.1)  # reopen attempts fail while unplugged
+        port.replug()
+        await _until(lambda: link.latest is not None)
+        centred = link.latest
+        port.write(pack_event(EV_ABS, ABS_X, -100) + pack_event(EV_SYN, SYN_REPORT, 0))
+        await _until(lambda: link.latest is not None and link.latest.turn == 1.0)
+        await link.stop()
+        return centred, link.reconnects
+
+    try:
+        centred, reconnects = asyncio.run(go())
+    finally:
+        port.close()
+    assert centred.forward == 0.0 and centred.turn == 0.0  # held stick does not carry over
+    assert reconnects == 1

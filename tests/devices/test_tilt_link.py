@@ -287,3 +287,25 @@ def test_script_file_path_error_is_one_line(tmp_path):
     )
     assert out.returncode == 2
     assert "none.txt" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_port_that_never_answers_is_logged(tmp_path, caplog):
+    emu = Gs311Emulator([(0, 0.0, 0.0)])
+    emu.silent = True
+    path = emu.open_pty()
+
+    async def go():
+        link = TiltSensorLink(_link_settings(path))
+        await link.start()
+        await _until(lambda: link.health.consecutive_timeouts >= 8)
+        h, latest = link.health, link.latest
+        await link.stop()
+        return h, latest
+
+    with caplog.at_level(logging.WARNING, logger="omnid.devices.tilt"):
+        try:
+            h, latest = asyncio.run(go())
+        finally:
+            emu.close()
+    assert latest is None and h.replies_ok == 0 and not h.valid
+    assert "not answering" in caplog.text and path in caplog.text
