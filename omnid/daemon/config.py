@@ -36,6 +36,10 @@ class ControlSettings:
     status_timeout_s: float = 0.25  # no control-unit status this long → stop
     max_dt_s: float = 0.1  # a longer gap between cycles is treated as this (no ramp jumps)
     pose_history_s: float = 5.0  # odometry kept to compensate late perception results
+    # after a control-unit fault or a cycle exception, motion waits until the rider's command
+    # has been released once (the shipped etc/omnid.yaml: true). The default false keeps
+    # clock-injected users (simulator scenarios) resuming with a held command
+    rearm_after_fault: bool = False
 
     def __post_init__(self) -> None:
         require(1.0 <= self.rate_hz <= 500.0, "rate_hz", "must be in [1, 500]")

@@ -13,9 +13,10 @@ ends in zero wheel velocity, logged with its reason:
   ``ControlUnitLink.status``) → likewise, at once rather than after ``status_timeout_s``;
 - an exception inside a cycle → duty 0, ``enable=False``, controllers reset.
 
-After a control-unit fault or an exception the chair does not resume by itself when the link
-comes back: motion stays refused (``rearm``) until the rider's demand has been idle or stop once,
-so a command the rider held through the fault does not restart the wheels unannounced.
+With ``control.rearm_after_fault`` (on in the shipped etc/omnid.yaml), after a control-unit
+fault or an exception the chair does not resume by itself when the link comes back: motion
+stays refused (``rearm``) until the rider's demand has been idle or stop once, so a command the
+rider held through the fault does not restart the wheels unannounced.
 
 Perception results arrive late (they are computed in a worker thread while the chair moves):
 the cloud is moved into the current robot frame by the odometry between its capture time and
@@ -254,6 +255,8 @@ class ControlCore:
         reasons: list[Reason] = []
         m = cfg.motion
         emergency = False
+        if self.rearm_after is not None and not cfg.control.rearm_after_fault:
+            self.rearm_after = None
         if self.rearm_after is not None:
             if demand.moving:
                 self._log.log(

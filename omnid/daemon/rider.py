@@ -98,7 +98,8 @@ class TiltSettings:
     # tests) on the thesis behaviour
     neutral_calibration_s: float = 0.0
     neutral_max_spread_deg: float = 2.0  # readings farther than this from their median: retake
-    neutral_max_offset_deg: float = 20.0  # a neutral farther than this from level: retake
+    neutral_max_offset_deg: float = 10.0  # a neutral farther than this from level: retake
+    # (below threshold_deg: a head held in a command pose must not become the neutral)
 
     def __post_init__(self) -> None:
         require(0 < self.threshold_deg <= 45, "threshold_deg", "must be in (0, 45]")

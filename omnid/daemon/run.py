@@ -18,7 +18,8 @@ Tasks:
   ``perception.enabled: false`` the daemon runs and refuses forward motion (no free space seen).
 - rider inputs: teleop keyboard socket; GS311 tilt sensor (:class:`TiltSensorLink`, readings
   pushed into the core; neutral pose per ``rider.tilt.neutral_calibration_s``); joystick
-  (:class:`JoystickLink`, polled each cycle, reopened every second while absent). A source
+  (:class:`JoystickLink`, polled each cycle; opened again every second while absent at start,
+  after that the link reopens it itself). A source
   enabled but silent is a stop (rider mux).
 - systemd: READY=1 once the links run, WATCHDOG=1 from the control loop (so a hung loop is
   restarted), STATUS= once per ``service.status_period_s``.
@@ -174,19 +175,18 @@ class Daemon:
             self._closers.append(self.joystick.stop)
 
     async def _joystick_keeper(self) -> None:
-        """(Re)open the joystick while it is absent; a missing stick is a stop (rider mux)."""
+        """Open the joystick, retrying every second while it is absent at start (a missing
+        stick is a stop in the rider mux); once open, the link reopens it by itself."""
         failures = 0
-        while not self._stop.is_set():
-            js = self.joystick
-            if js is not None and not js.connected:
-                try:
-                    await asyncio.wait_for(js.start(), timeout=2.0)
-                    failures = 0
-                    log.info("joystick %s open", self.config.joystick_device.url)
-                except Exception as exc:
-                    failures += 1
-                    if failures == 1 or failures % 60 == 0:
-                        log.warning("joystick unavailable (%s): rider input stops", exc)
+        while not self._stop.is_set() and self.joystick is not None:
+            try:
+                await asyncio.wait_for(self.joystick.start(), timeout=2.0)
+                log.info("joystick %s open", self.config.joystick_device.url)
+                return
+            except Exception as exc:
+                failures += 1
+                if failures == 1 or failures % 60 == 0:
+                    log.warning("joystick unavailable (%s): rider input stops", exc)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), timeout=1.0)
 

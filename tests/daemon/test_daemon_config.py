@@ -41,8 +41,9 @@ def keys(tree, prefix=""):
 
 def test_shipped_file_is_valid_and_lists_every_daemon_key():
     cfg = load_config(SHIPPED)
-    # the file documents the defaults, except the devices' stable udev names and the
-    # neutral-pose calibration at start (on for a real rider; off for clock-injected users)
+    # the file documents the defaults, except the devices' stable udev names, the neutral-pose
+    # calibration at start and re-arming after a fault (on for a real rider; off for
+    # clock-injected users)
     assert cfg.control_unit.port == "/dev/omnid-control-unit"
     assert cfg.camera.url == "v4l2:///dev/omnid-camera1,/dev/omnid-camera2"
     assert cfg.rider.tilt.neutral_calibration_s == 3.0
@@ -53,9 +54,11 @@ def test_shipped_file_is_valid_and_lists_every_daemon_key():
             control_unit=replace(cfg.control_unit, port=d.control_unit.port),
             camera=replace(cfg.camera, url=d.camera.url),
             rider=replace(cfg.rider, tilt=d.rider.tilt),
+            control=replace(cfg.control, rearm_after_fault=False),
         )
         == d
     )
+    assert cfg.control.rearm_after_fault
     assert replace(cfg.rider.tilt, neutral_calibration_s=0.0) == d.rider.tilt
     shipped = keys(yaml.safe_load(SHIPPED.read_text()))
     defaults = keys({s: to_mapping(getattr(OmnidConfig(), s)) for s in DAEMON_SECTIONS})

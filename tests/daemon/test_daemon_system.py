@@ -120,6 +120,7 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
         f"teleop:\n  socket_path: {tmp_path / 'teleop.sock'}\n"
         f"perception:\n  calibration_path: {calib}\n  period_s: 0.3\n  worker_nice: 0\n"
         "rider:\n  tilt:\n    neutral_calibration_s: 0.5\n"
+        "control:\n  rearm_after_fault: true\n"
     )
     cfg.write_text(good)
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -140,7 +141,9 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
                 msgs.append(notify.recv(4096).decode())
             assert wait_for(lambda: cu.commands_received > 10, 3.0) is not None
             assert stopped(cu)
-            time.sleep(0.8)  # neutral-pose calibration (0.5 s of still readings)
+            # neutral-pose calibration: 0.5 s of still readings (wait for its log line: the
+            # start-up takes longer on a loaded machine)
+            assert wait_for(lambda: "neutral pose calibrated" in err_path.read_text(), 15.0)
             assert stopped(cu)
 
             # head forward past the threshold for the dwell time → wheels turn forward (this
@@ -174,7 +177,7 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
             assert wait_for(lambda: forward(cu), 4.0) is not None
 
             # SIGHUP with a broken file: refused, the old configuration keeps driving
-            cfg.write_text(good + "control:\n  rate_hz: nope\n")
+            cfg.write_text(good.replace("rearm_after_fault: true", "rate_hz: nope"))
             proc.send_signal(signal.SIGHUP)
             time.sleep(0.4)
             assert proc.poll() is None
