@@ -9,8 +9,8 @@ ends in zero wheel velocity, logged with its reason:
   ``enable=False`` (without feedback nothing can be regulated; the control unit brakes);
 - a control-unit fault flag → likewise;
 - perception missing or stale → no forward motion (:mod:`omnid.daemon.safety`);
-- the control-unit link reports itself unhealthy (``link_ok`` False, set by the daemon from
-  ``ControlUnitLink.status``) → likewise, at once rather than after ``status_timeout_s``;
+- the control-unit port is gone (``link_ok`` False, set by the daemon from the link's health)
+  → likewise, at once rather than after ``status_timeout_s``;
 - an exception inside a cycle → duty 0, ``enable=False``, controllers reset.
 
 With ``control.rearm_after_fault`` (on in the shipped etc/omnid.yaml), after a control-unit

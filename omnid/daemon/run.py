@@ -6,8 +6,9 @@ Tasks:
   ``t0 + k·period``; a late cycle runs at once and a cycle more than one period late is skipped
   (counted), never bunched. Each cycle: joystick poll → ``core.step(now)`` →
   ``ControlUnitLink.set_command``. The link's own task sends the latest command every
-  ``control_unit.command_period_s``; its replies arrive through ``core.on_status``, and while the
-  link reports itself unhealthy the core stops the chair at once (``core.link_ok``).
+  ``control_unit.command_period_s``; its replies arrive through ``core.on_status``. The core
+  stops the chair when no status came for ``control.status_timeout_s``, and at once when the
+  port is gone (``core.link_ok``).
 - perception cycle (``perception.enabled``): laser off → wait until the control unit *reports*
   it off → flush stale frames → mask pair → laser on → wait until reported on → flush → base
   pair → ``perceive`` in a separate **worker process** (:mod:`omnid.daemon.perception_worker`:
@@ -192,16 +193,20 @@ class Daemon:
 
     # ---- the control loop ---------------------------------------------------------------
     def _cycle(self, now: float, urgent: bool = False) -> None:
-        link_ok = self.link.status is not None
-        if link_ok != self._link_was_ok:
-            self._link_was_ok = link_ok
-            if link_ok:
-                log.warning("control unit link back; chair stays stopped until the rider releases")
+        healthy = self.link.status is not None
+        if healthy != self._link_was_ok:
+            self._link_was_ok = healthy
+            if healthy:
+                log.warning("control unit link back")
             else:
                 log.error(
-                    "control unit link lost (%s): wheels stopped", self.link.health.last_error
+                    "control unit link lost (%s): wheels stop once no status for %.2f s",
+                    self.link.health.last_error,
+                    self.config.control.status_timeout_s,
                 )
-        self.core.link_ok = link_ok
+        # a port that is gone stops at once; missed replies stop after status_timeout_s (the
+        # unit's own watchdog time), so one noisy exchange on the bus does not brake the chair
+        self.core.link_ok = self.link.health.connected
         js = self.joystick
         if js is not None:
             reading = js.latest
