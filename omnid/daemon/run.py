@@ -284,18 +284,6 @@ class Daemon:
             await asyncio.sleep(0.003)
         return False
 
-    async def _slow_for_capture(self, cap_mm_s: float) -> None:
-        """``limit`` policy: the core already caps the speed; wait (≤ 1 s) until the commanded
-        speed is under the cap, plus one motor time constant, so the floor texture moves
-        ≤ 0.35 px between mask and base (tools/eval_capture_motion.py)."""
-        ramp = self.core.motion.ramp
-        if abs(ramp.v_mm_s) <= cap_mm_s + 1e-6:
-            return
-        end = time.monotonic() + 1.0
-        while abs(self.core.motion.ramp.v_mm_s) > cap_mm_s + 1e-6 and time.monotonic() < end:
-            await asyncio.sleep(self.config.control.period_s)
-        await asyncio.sleep(0.15)
-
     async def _read(self, camera: Any) -> tuple[Any, Any, float]:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
@@ -309,8 +297,6 @@ class Daemon:
         t0 = time.monotonic()
         try:
             self.core.capturing = True
-            if p.capture_policy == "limit":
-                await self._slow_for_capture(p.capture_speed_mm_s)
             self.core.laser_on = False
             if not await self._wait_laser(False, p.laser_timeout_s):
                 raise TimeoutError(
