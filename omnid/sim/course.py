@@ -102,6 +102,21 @@ def empty_room(length_mm: float = 4000.0, width_mm: float = 3000.0) -> Course:
     )
 
 
+def box_ahead() -> Course:
+    """A walled room 6 m long with one box (600 mm tall) straight ahead: its near face 2 m in
+    front of the chair's axle (1.6 m in front of its footrests)."""
+    x0, x1, y0, y1 = -1000.0, 5000.0, -2000.0, 2000.0
+    box = Box(2000.0, 2400.0, -400.0, 400.0, 600.0)
+    return Course(
+        name="box-ahead",
+        world=World(boxes=(box, *walls(x0, x1, y0, y1))),
+        start_pose=(0.0, 0.0, 0.0),
+        x_range_mm=(x0 - WALL_MM, x1 + WALL_MM),
+        y_range_mm=(y0 - WALL_MM, y1 + WALL_MM),
+        labels=(("box", 2200.0, 0.0),),
+    )
+
+
 def demo_rider() -> HeadScript:
     """The demo's rider: straight on through the wide passage towards the stairs (the daemon must
     stop the chair before them), turn left, forward towards box 3 (must stop again), then rest."""
@@ -124,11 +139,11 @@ def demo_keys() -> KeyScript:
     return KeyScript(((1.3, "forward"), (34.6, "left"), (45.6, "forward"), (58.1, "stop")))
 
 
-COURSES = {"builtin": builtin_course, "empty-room": empty_room}
+COURSES = {"builtin": builtin_course, "empty-room": empty_room, "box-ahead": box_ahead}
 
 
 def get_course(name: str) -> Course:
-    """A named course (``builtin`` or ``empty-room``)."""
+    """A named course (``builtin``, ``empty-room`` or ``box-ahead``)."""
     try:
         return COURSES[name]()
     except KeyError:
