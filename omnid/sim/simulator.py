@@ -830,10 +830,12 @@ class Simulator:
         last_pose: tuple[float, float, float] | None = None
 
         # Records preallocated for the whole run (no per-tick allocations; a soak's memory
-        # figure then shows the daemon, not the recorder).
-        traj = np.empty((n_ticks // k_rec + 2, 4))
-        speeds = np.empty((n_ticks + 1, 3))
-        cmds = np.empty((n_ticks // k_ctrl + 1, 5))
+        # figure then shows the daemon, not the recorder). Filled now, not np.empty: the kernel
+        # commits a page only when it is first written, so empty records grew the resident
+        # memory by 3.4 kB per simulated second (6 MB in a 30-minute soak) as they filled.
+        traj = np.full((n_ticks // k_rec + 2, 4), np.nan)
+        speeds = np.full((n_ticks + 1, 3), np.nan)
+        cmds = np.full((n_ticks // k_ctrl + 1, 5), np.nan)
         n_traj = n_speed = n_cmd = 0
         contacts: list[tuple[float, Contact]] = []
         seen: list[NDArray[np.float64]] = []
