@@ -1,6 +1,11 @@
 """Benchmark of the whole daemon on emulated links, with perception running.
 
 Run from the repository root:  python tools/bench_daemon.py [--presses 200] [--period-s 0.3]
+                               python tools/bench_daemon.py --step-cost [--minutes 3]
+
+``--step-cost``: the cost of one ``ControlCore.step`` in the CI soak's setup (cluttered room,
+random joystick rider, 50 Hz, truth perception; tests/scenarios/test_soak.py), with the
+closed-form safety sweep and — reference, same run — with the sampled ``sweep_reference``.
 
 Starts the real ``omnid run --config FILE --stats-out JSON`` process as systemd would, against
 (in this process) the control-unit emulator on a pty, the GS311 emulator on a pty (head at
@@ -54,11 +59,61 @@ def pct(xs, q) -> float:
     return float(np.percentile(np.asarray(xs) * 1e3, q)) if len(xs) else float("nan")
 
 
+def step_cost(minutes: float) -> None:
+    """Per-step wall time of ``ControlCore.step`` in the soak, fast sweep vs the reference."""
+    import logging
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "scenarios"))
+    from test_soak import cluttered_room, soak_settings  # type: ignore[import-not-found]
+
+    from omnid.sim.rider import random_ride
+    from omnid.sim.scenario import make_core
+    from omnid.sim.simulator import Simulator
+
+    logging.disable(logging.CRITICAL)
+    duration = 60.0 * minutes
+    print(f"machine: {os.cpu_count()} cores; soak setup, {minutes:g} simulated min each")
+    rows = {}
+    for name in ("reference (sampled sweep)", "closed-form sweep"):
+        core = make_core(joystick=True)
+        if name.startswith("reference"):
+            core.safety.sweep = core.safety.sweep_reference  # type: ignore[method-assign]
+        times: list[float] = []
+        inner = core.step
+
+        def timed(now_s: float, inner=inner, times=times):  # type: ignore[no-untyped-def]
+            t0 = time.perf_counter()
+            out = inner(now_s)
+            times.append(time.perf_counter() - t0)
+            return out
+
+        core.step = timed  # type: ignore[method-assign]
+        sim = Simulator(cluttered_room(), core, soak_settings(), joystick=random_ride(7, duration))
+        w0 = time.perf_counter()
+        r = sim.run(duration)
+        wall = time.perf_counter() - w0
+        t = np.asarray(times) * 1e3
+        rows[name] = float(t.mean())
+        print(
+            f"  {name:27s} step mean {t.mean():.3f} ms  p50 {np.median(t):.3f}  p99 "
+            f"{np.percentile(t, 99):.3f}  p99.9 {np.percentile(t, 99.9):.2f}  max {t.max():.2f} ms"
+            f"  ({len(t)} steps; run {wall:.1f} s wall, {r.distance_mm / 1000:.1f} m, "
+            f"{len(r.collisions)} collisions)"
+        )
+    ref, fast = rows.values()
+    print(f"  mean step cost ratio reference / closed-form: {ref / fast:.1f}x")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--presses", type=int, default=200)
     ap.add_argument("--period-s", type=float, default=0.3, help="perception.period_s")
+    ap.add_argument("--step-cost", action="store_true", help="ControlCore.step cost only")
+    ap.add_argument("--minutes", type=float, default=3.0, help="soak length for --step-cost")
     a = ap.parse_args()
+    if a.step_cost:
+        step_cost(a.minutes)
+        return
 
     from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
