@@ -162,6 +162,7 @@ class ControlUnitHealth:
     crc_errors: int = 0
     malformed: int = 0
     seq_errors: int = 0
+    late_bytes_discarded: int = 0
     port_errors: int = 0
     reconnects: int = 0
     consecutive_missed: int = 0
@@ -399,6 +400,10 @@ class ControlUnitLink:
         t = self._transport
         assert t is not None
         h = self._health
+        # Half duplex: whatever is still in the input is a late (part of a) reply to an earlier
+        # command. Drop it, so that its tail cannot be parsed as a CRC error against this command.
+        h.late_bytes_discarded += t.reset_input()
+        self._parser.reset()
         frame = self._next_frame()
         seq = frame.seq
         await t.write(codec.encode_command(frame))
