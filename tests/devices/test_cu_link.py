@@ -7,6 +7,7 @@ flag), not wall time, so the assertions hold on a loaded CI machine.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -17,13 +18,14 @@ import pytest
 from omnid.config import from_mapping
 from omnid.devices import cu_codec as codec
 from omnid.devices.control_unit import (
+    ControlUnitHealth,
     ControlUnitLink,
     ControlUnitSettings,
     WheelCommand,
 )
 from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
-from omnid.devices.transport import pipe_pair
-from omnid.errors import ConfigError, ProtocolError
+from omnid.devices.transport import LoopTransport, Transport, pipe_pair
+from omnid.errors import ConfigError, DeviceClosed, DeviceError, ProtocolError
 
 PERIOD_S = 0.01
 
@@ -369,3 +371,98 @@ def test_late_partial_reply_is_dropped_before_the_next_command_not_blamed_on_it(
         assert h.late_bytes_discarded == late
 
     asyncio.run(main())
+
+
+class HangingEnd(LoopTransport):
+    """A pipe end whose writes can be made to hang forever (a wedged USB adapter driver)."""
+
+    hang = False
+
+    async def _write_raw(self, data: bytes) -> None:
+        if self.hang:
+            await asyncio.Event().wait()
+        await super()._write_raw(data)
+
+
+def test_stuck_or_dead_link_task_never_leaves_a_stale_status(caplog):
+    caplog.set_level(logging.WARNING, "omnid.devices.control_unit")
+
+    async def main():
+        a, b = HangingEnd("hang:a"), LoopTransport("hang:b")
+        a.peer, b.peer = b, a
+        emu = ControlUnitEmulator()
+        emu.serve_pipe(b)
+        s = settings("pipe", unit_watchdog_s=0.1)
+        link = ControlUnitLink(s, transport_factory=lambda: a)
+        await link.start()
+        await wait_for(lambda: link.status is not None)
+        a.hang = True  # the task now waits forever inside a write: no reply, no miss counted
+        await wait_for(lambda: link.status is None)
+        st = link.last_status
+        assert st is not None and time.monotonic() - st.timestamp_s > s.unit_watchdog_s
+        assert not link.health.healthy and link.health.timeouts == 0
+        assert "old" in caplog.text
+        await link.stop()  # gives up on the stuck task after its own timeout
+        assert link.status is None
+        emu.close()
+        # a task that died (cancelled here) is caught at once, without waiting for the age
+        a2, b2 = pipe_pair()
+        emu = ControlUnitEmulator()
+        emu.serve_pipe(b2)
+        link2 = ControlUnitLink(s, transport_factory=lambda: a2)
+        await link2.start()
+        await wait_for(lambda: link2.status is not None)
+        task = link2._task
+        assert task is not None
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        assert link2.status is None and "task not running" in caplog.text
+        await link2.stop()
+        emu.close()
+
+    asyncio.run(main())
+
+
+class DeadOnArrival(LoopTransport):
+    """A port that opens fine and fails every write (an adapter that enumerates but is dead)."""
+
+    async def _write_raw(self, data: bytes) -> None:
+        raise DeviceClosed(f"{self.name}: device disconnected (EIO)")
+
+
+def test_port_that_opens_but_fails_at_once_is_retried_with_backoff_not_spun():
+    """Regression: reopen followed by an instant write error used to loop without ever yielding,
+    freezing the whole event loop (the daemon could not even stop). Now each failure backs off.
+    """
+    opens = 0
+
+    def factory() -> Transport:
+        nonlocal opens
+        opens += 1
+        if opens > 500:  # the old spin would get here without yielding; end it, then fail below
+            raise DeviceError("gave up")
+        return DeadOnArrival(f"dead{opens}")
+
+    async def main():
+        link = ControlUnitLink(settings("dead"), transport_factory=factory)
+        await link.start()
+        t0 = time.monotonic()
+        ticks = 0
+        for _ in range(20):  # the loop keeps running other tasks meanwhile
+            await asyncio.sleep(0.01)
+            ticks += 1
+        h = link.health
+        elapsed_s = time.monotonic() - t0
+        await link.stop()
+        return ticks, h, elapsed_s
+
+    ticks, h, elapsed_s = asyncio.run(main())
+    assert ticks == 20 and link_never_healthy(h)
+    # back-off from 10 ms doubling to 50 ms: at most one reopen per 10 ms, never 500 at once
+    assert 2 <= opens <= 2 + elapsed_s / 0.01, (opens, elapsed_s)
+    assert h.port_errors == opens and "EIO" in h.last_error
+
+
+def link_never_healthy(h: ControlUnitHealth) -> bool:
+    return not h.healthy and h.replies_ok == 0
