@@ -34,21 +34,29 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--serve",
         metavar="SOCKET",
-        help="also serve camera frames on this Unix socket (sim+unix://) while running in real time",
+        help="real time for an external `omnid run`: a control-unit pty (printed) and camera "
+        "frames on this Unix socket (sim+unix://) until SIGTERM or --duration-s",
+    )
+    p.add_argument(
+        "--floor-capture",
+        metavar="DIR",
+        help="write mask1/base1/mask2/base2.png of an empty floor as the simulated rig sees it "
+        "(for `omnid calibrate`, floor depth = the rig's mount height) before running",
     )
     p.set_defaults(func=handle)
 
 
 def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
     """Options shared by ``simulate`` and ``demo``."""
-    p.add_argument("--course", default="builtin", help="builtin (default) or empty-room")
+    p.add_argument("--course", default="builtin", help="builtin (default), empty-room or box-ahead")
     p.add_argument("--duration-s", type=float, default=45.0, help="simulated seconds (45)")
     p.add_argument(
         "--perception",
         choices=["truth", "pipeline", "off"],
-        default="truth",
-        help="truth: cast laser dots with their true classes (fast); pipeline: rendered images "
-        "through the vision pipeline; off: no perception (default truth)",
+        default="pipeline",
+        help="pipeline: rendered mask/base frames of the misaligned rig, calibrated at install, "
+        "through omnid.core.pipeline.perceive (default); truth: cast laser dots with their true "
+        "classes (fast); off: no perception",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (0)")
     p.add_argument("--out", default=default_out, help=f"report directory ({default_out})")
@@ -79,6 +87,8 @@ def handle(args: argparse.Namespace) -> int:
         from omnid.sim.simulator import OpenLoopDriver
 
         controller = OpenLoopDriver(parse_drive(args.drive))
+    if getattr(args, "floor_capture", None):
+        scenario.write_floor_capture(args.floor_capture, args.seed)
     if args.serve:
         return scenario.serve_real_time(args, controller)
     return scenario.run_and_report(args, controller, title="omnid simulate")

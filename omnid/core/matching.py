@@ -48,9 +48,11 @@ from numpy.typing import NDArray
 from omnid.config import require
 
 if TYPE_CHECKING:
-    from omnid.core.calibration import Calibration
+    from omnid.core.calibration import Calibration, LaserLattice
+    from omnid.core.geometry import MirrorCamera
 
 MatchMethod = Literal["thesis", "best"]
+_NO_RAY = -(2**40)  # "ray not known" (ray indices run negative too)
 
 __all__ = [
     "MatchMethod",
@@ -73,6 +75,8 @@ class MatchSettings:
     dropoff_depth_mm: float = 400.0  # deepest drop-off considered: this far below the floor
     lattice_tol: float = 0.25  # best: mid slope off a laser ray by at most this × lattice step
     double_dot_ratio: float = 1.35  # best: brighter than this × median = two merged dots
+    anchor_margin_px: float = 5.0  # best: a row end is the lattice end when one more dot
+    # would lie this far inside the mirror disk
     thesis_search_px: float = 1.0  # thesis: neighbourhood searched for each n of eq. 6.16
     thesis_max_n: int | None = None  # thesis: upper limit of n; None = from min_depth_mm
 
@@ -81,6 +85,7 @@ class MatchSettings:
         require(self.min_depth_mm > 0, "min_depth_mm", "must be positive")
         require(self.dropoff_depth_mm >= 0, "dropoff_depth_mm", "must not be negative")
         require(0 < self.lattice_tol < 0.5, "lattice_tol", "must be in (0, 0.5)")
+        require(self.anchor_margin_px >= 0, "anchor_margin_px", "must not be negative")
         require(self.thesis_search_px > 0, "thesis_search_px", "must be positive")
         require(self.thesis_max_n is None or self.thesis_max_n >= 0, "thesis_max_n", "must be >= 0")
 
@@ -290,6 +295,327 @@ def _match_thesis(
 def _match_best(
     calib: Calibration, d1: NDArray[np.float64], d2: NDArray[np.float64], s: MatchSettings
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    lat = calib.lattice
+    if lat is None:
+        return _match_best_no_lattice(calib, d1, d2, s)
+    rig = calib.rig
+    D = rig.baseline_mm
+    H = rig.floor_depth_mm
+    f = 0.5 * (rig.cam1.f_over_k_px + rig.cam2.f_over_k_px)
+    p1 = rig.cam1.ray_slopes(d1[:, :2])  # (X/Z, (Y − Y1)/Z)
+    p2 = rig.cam2.ray_slopes(d2[:, :2])
+    tol_a = s.row_tol_px / f
+    sb = lat.step_b
+    # Laser row of each dot from its own camera (the row does not change with depth, SPEC §2).
+    l1f = (p1[:, 0] - lat.a0) / lat.step_a
+    l2f = (p2[:, 0] - lat.a0) / lat.step_a
+    l1 = np.rint(l1f).astype(np.int64)
+    l2 = np.rint(l2f).astype(np.int64)
+    on1 = (np.abs(l1f - l1) <= s.lattice_tol) & (l1 >= lat.rows[0] - 1) & (l1 <= lat.rows[1] + 1)
+    on2 = (np.abs(l2f - l2) <= s.lattice_tol) & (l2 >= lat.rows[0] - 1) & (l2 <= lat.rows[1] + 1)
+    # Anchors: ray index of each dot implied by a lattice end visible in its camera, or −1.
+    mult1 = _multiplicity(d1[:, 2], s.double_dot_ratio)
+    mult2 = _multiplicity(d2[:, 2], s.double_dot_ratio)
+    k1 = _anchor_labels(rig.cam1, p1, l1, on1, lat, s, mult1 > 1)
+    k2 = _anchor_labels(rig.cam2, p2, l2, on2, lat, s, mult2 > 1)
+    # Candidates: same laser row, disparity D/Z in the window, mid slope on a laser ray.
+    lo, hi = D / (H + s.dropoff_depth_mm), D / s.min_depth_mm
+    ids2 = np.flatnonzero(on2)
+    key2 = l2[ids2] * 1000.0 + p2[ids2, 1]
+    o2 = np.argsort(key2, kind="stable")
+    ids2, key2 = ids2[o2], key2[o2]
+    ids1 = np.flatnonzero(on1)
+    key1 = l1[ids1] * 1000.0 + p1[ids1, 1]
+    a_lo = np.searchsorted(key2, key1 - hi, side="left")
+    a_hi = np.searchsorted(key2, key1 - lo, side="right")
+    own, pos = _expand_ranges(a_lo, a_hi)
+    i, j = ids1[own], ids2[pos]
+    if len(i) == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    disp = p1[i, 1] - p2[j, 1]  # D/Z
+    b_mid = 0.5 * (p1[i, 1] + p2[j, 1])  # Y/Z: the slope of the laser ray, if the pair is true
+    kb = (b_mid - lat.b0) / sb
+    ray = np.rint(kb).astype(np.int64)
+    res_b = np.abs(kb - ray)
+    keep = (res_b <= s.lattice_tol) & (np.abs(p1[i, 0] - p2[j, 0]) <= tol_a)
+    keep &= (ray >= lat.cols[0]) & (ray <= lat.cols[1])  # no dot comes from a ray that is not there
+    # A dot whose camera shows the end of its laser row knows its ray: pairs against it go.
+    keep &= (k1[i] == _NO_RAY) | (k1[i] == ray)
+    keep &= (k2[j] == _NO_RAY) | (k2[j] == ray)
+    i, j, disp, ray, res_b = i[keep], j[keep], disp[keep], ray[keep], res_b[keep]
+    if len(i) == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    c_floor = np.minimum(np.abs(disp - D / H) / max(hi - D / H, 1e-9), 1.0)
+    c_row = np.minimum(np.abs(p1[i, 0] - p2[j, 0]) / tol_a, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.abs(np.log(np.maximum(d1[i, 2], 1e-3) / np.maximum(d2[j, 2], 1e-3)))
+    c_bright = np.minimum(np.nan_to_num(ratio / math.log(2.0)), 1.0)
+    c_lat = np.minimum(res_b / s.lattice_tol, 1.0)
+    cost = 0.6 * c_floor + 0.2 * c_lat + 0.1 * c_row + 0.1 * c_bright
+    # anchored pairs are certain; the rest carry the floor-first preference
+    anchored = (k1[i] != _NO_RAY) | (k2[j] != _NO_RAY)
+    gain = 1.0 - 0.01 * cost + 0.001 * anchored
+    # Pairs fixed by the labels of both dots, with no rival, need no search.
+    cnt_i = np.bincount(i, minlength=len(d1))
+    cnt_j = np.bincount(j, minlength=len(d2))
+    sure = (k1[i] != _NO_RAY) & (k2[j] != _NO_RAY) & (cnt_i[i] == 1) & (cnt_j[j] == 1)
+    si, sj = i[sure], j[sure]
+    rest = ~sure
+    used_j = np.zeros(len(d2), dtype=bool)
+    used_j[sj] = True
+    rest &= ~used_j[j] | (mult2[j] > 1)
+    slack = 0.3 * sb
+    if rest.any() and sure.any():
+        # the rest must keep the order of rays and camera-2 columns with the sure pairs
+        skey = l1[si] * 1000.0 + p1[si, 1]
+        so = np.argsort(skey)
+        skey, sray, se2 = skey[so], ray[sure][so], p2[sj[so], 1]
+        q = l1[i] * 1000.0 + p1[i, 1]
+        pos = np.searchsorted(skey, q)
+        left = np.maximum(pos - 1, 0)
+        right = np.minimum(pos, len(skey) - 1)
+        has_l = (pos > 0) & (np.rint(skey[left] / 1000.0) == l1[i])
+        has_r = (pos < len(skey)) & (np.rint(skey[right] / 1000.0) == l1[i])
+        e2c = p2[j, 1]
+        rest &= ~has_l | ((ray > sray[left]) & (e2c > se2[left] - slack))
+        rest &= ~has_r | ((ray < sray[right]) & (e2c < se2[right] + slack))
+    if not rest.any():
+        return si.astype(np.intp), sj.astype(np.intp)
+    vi, vj = _row_viterbi(
+        l1,
+        p1[:, 1],
+        i[rest],
+        j[rest],
+        ray[rest],
+        p2[j[rest], 1],
+        disp[rest],
+        gain[rest],
+        slack,
+        2.0 * sb,
+        mult2,
+    )
+    return np.concatenate([si, vi]).astype(np.intp), np.concatenate([sj, vj]).astype(np.intp)
+
+
+def _anchor_labels(
+    cam: MirrorCamera,
+    p: NDArray[np.float64],
+    row: NDArray[np.int64],
+    on: NDArray[np.bool_],
+    lat: LaserLattice,
+    s: MatchSettings,
+    double: NDArray[np.bool_],
+) -> NDArray[np.int64]:
+    """Laser ray index of each dot implied by the ends of its laser row, or ``_NO_RAY``.
+
+    Where one ray step beyond a row's outermost dot still lies well inside the mirror disk, a dot
+    there would have been seen, so the outermost dot is the end of the laser lattice (ray
+    ``cols[0]`` on the left, ``cols[1]`` on the right). Counting lattice steps inward along the
+    row (while the spacing stays a whole number of steps, i.e. the depth does not jump) gives
+    the ray of each dot. Rows whose two ends disagree get no labels.
+    """
+    out = np.full(len(p), _NO_RAY, dtype=np.int64)
+    ids = np.flatnonzero(on)
+    if len(ids) == 0:
+        return out
+    sb = lat.step_b
+    ids = ids[np.lexsort((p[ids, 1], row[ids]))]
+    L, e, a = row[ids], p[ids, 1], p[ids, 0]
+    n = len(ids)
+    start = np.concatenate([[True], L[1:] != L[:-1]])
+    end = np.concatenate([L[1:] != L[:-1], [True]])
+    g = np.cumsum(start) - 1
+    first = np.flatnonzero(start)
+    last = np.flatnonzero(end)
+    step = np.zeros(n)
+    step[1:] = (e[1:] - e[:-1]) / sb
+    inc = np.rint(step)
+    # The walk stops at a gap (a missing dot, or a depth jump of whole lattice steps) and at a
+    # double-bright dot (two dots on top of each other: a surface one step nearer).
+    bad = ~start & ((np.abs(step - inc) > 0.25) | (inc != 1))
+    dbl = double[ids]
+    bad |= dbl
+    bad[1:] |= dbl[:-1] & ~start[1:]
+    inc[start] = 0.0
+    csum = np.cumsum(inc)
+    bcum = np.cumsum(bad)
+
+    def beyond_inside(idx: NDArray[np.intp], direction: float) -> NDArray[np.bool_]:
+        xyz = np.column_stack([a[idx], e[idx] + direction * sb + cam.y_mm, np.ones(len(idx))])
+        return cam.in_disk(cam.project(xyz), margin_px=s.anchor_margin_px)
+
+    has_l = beyond_inside(first, -1.0)[g]
+    has_r = beyond_inside(last, +1.0)[g]
+    k_l = lat.cols[0] + (csum - csum[first][g])
+    ok_l = has_l & (bcum - bcum[first][g] == 0)
+    k_r = lat.cols[1] - (csum[last][g] - csum)
+    ok_r = has_r & (bcum[last][g] - bcum == 0)
+    k = np.where(ok_l, k_l, k_r).astype(np.int64)
+    ok = ok_l | ok_r
+    conflict = (ok_l & ok_r & (k_l != k_r)) | (ok & ((k < lat.cols[0]) | (k > lat.cols[1])))
+    bad_row = np.zeros(len(first), dtype=bool)
+    np.logical_or.at(bad_row, g[conflict], True)
+    ok &= ~bad_row[g]
+    k = np.where(ok & ~dbl, k, _NO_RAY)
+    if not ok.all():
+        _propagate_labels(k, e, csum, np.cumsum(start | bad) - 1, first, last, sb, lat)
+    out[ids] = k
+    return out
+
+
+def _propagate_labels(
+    k: NDArray[np.int64],
+    e: NDArray[np.float64],
+    csum: NDArray[np.float64],
+    seg: NDArray[np.int64],
+    first: NDArray[np.intp],
+    last: NDArray[np.intp],
+    sb: float,
+    lat: LaserLattice,
+) -> None:
+    """Carry ray labels to rows whose ends the mirror disk hides, in place.
+
+    A laser ray's dots in neighbouring rows lie at nearly the same column slope (the depth of a
+    surface changes little from one row to the next), so a dot within 0.3 lattice steps of a
+    labelled dot of the row before takes its ray; a regularly spaced run of dots takes the
+    labels only when at least two such votes agree and none disagrees. Only rows with no label
+    of their own are filled (a depth jump of exactly one lattice step would fool the vote).
+    Sweeps forward, then back. ``k``, ``e``, ``csum`` and ``seg`` are sorted by (row, column slope).
+    """
+    n_rows = len(first)
+    for order in (range(1, n_rows), range(n_rows - 2, -1, -1)):
+        for r in order:
+            a, b = first[r], last[r] + 1
+            if (k[a:b] != _NO_RAY).any():
+                continue  # only rows with no label at all: a row's own ends are surer
+            nb = r - 1 if order.step == 1 else r + 1
+            pa, pb = first[nb], last[nb] + 1
+            lab = k[pa:pb] != _NO_RAY
+            if lab.sum() < 2:
+                continue
+            pe, pk = e[pa:pb][lab], k[pa:pb][lab]
+            q = np.clip(np.searchsorted(pe, e[a:b]), 1, len(pe) - 1)
+            near = np.where(np.abs(pe[q - 1] - e[a:b]) < np.abs(pe[q] - e[a:b]), q - 1, q)
+            close = (np.abs(pe[near] - e[a:b]) < 0.3 * sb) & (k[a:b] == _NO_RAY)
+            for sg in np.unique(seg[a:b][k[a:b] == _NO_RAY]):
+                m = (seg[a:b] == sg) & close
+                votes = pk[near[m]] - csum[a:b][m]
+                if len(votes) >= 2 and (votes == votes[0]).all():
+                    sel = np.flatnonzero(seg[a:b] == sg) + a
+                    lab_new = (votes[0] + csum[sel]).astype(np.int64)
+                    if lab_new.min() >= lat.cols[0] and lab_new.max() <= lat.cols[1]:
+                        k[sel] = lab_new
+
+
+def _row_viterbi(
+    row1: NDArray[np.int64],
+    e1: NDArray[np.float64],
+    i: NDArray[np.intp],
+    j: NDArray[np.intp],
+    ray: NDArray[np.int64],
+    e2: NDArray[np.float64],
+    disp: NDArray[np.float64],
+    gain: NDArray[np.float64],
+    slack: float,
+    disp_scale: float,
+    mult2: NDArray[np.int64],
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Best assignment along each laser row: a Viterbi pass over the camera-1 dots in column
+    order, each either unmatched or paired with one of its candidates, all rows at once.
+
+    Consecutive pairs must keep the order of laser rays (strictly) and of camera-2 columns
+    (within ``slack``) and use different camera-2 dots unless that dot may stand for two
+    (``mult2``); a change of disparity between neighbours costs a little (surfaces are mostly
+    continuous). The unmatched state carries the last pair of its best path, so the order holds
+    across unmatched dots too. Returns the chosen (i, j).
+    """
+    # camera-1 dots with candidates, in (row, column) order → grid (G rows, P positions)
+    u, inv = np.unique(i, return_inverse=True)
+    uo = np.lexsort((e1[u], row1[u]))
+    rank = np.empty(len(u), dtype=np.int64)
+    rank[uo] = np.arange(len(u))
+    ur = row1[u][uo]
+    rstart = np.concatenate([[True], ur[1:] != ur[:-1]])
+    grp = np.cumsum(rstart) - 1
+    pos_in_row = np.arange(len(u)) - np.flatnonzero(rstart)[grp]
+    G, P = int(grp[-1]) + 1, int(pos_in_row.max()) + 1
+    cg, cp = grp[rank[inv]], pos_in_row[rank[inv]]
+    # candidates of each dot: slot 0..C−1, best gain first
+    co = np.lexsort((-gain, rank[inv]))
+    slot = np.empty(len(i), dtype=np.int64)
+    first = np.concatenate([[True], rank[inv][co][1:] != rank[inv][co][:-1]])
+    slot[co] = np.arange(len(co)) - np.maximum.accumulate(np.where(first, np.arange(len(co)), 0))
+    C = int(slot.max()) + 1
+    shape = (G, P, C + 1)
+    W = np.full(shape, -np.inf)
+    W[:, :, C] = 0.0
+    K = np.full(shape, -(2**40), dtype=np.int64)
+    E = np.full(shape, -np.inf)
+    J = np.full(shape, -1, dtype=np.int64)
+    Dv = np.full(shape, 1e9)  # no pair before: the first disparity step costs the same for all
+    DB = np.zeros(shape, dtype=bool)
+    W[cg, cp, slot] = gain
+    K[cg, cp, slot] = ray
+    E[cg, cp, slot] = e2
+    J[cg, cp, slot] = j
+    Dv[cg, cp, slot] = disp
+    DB[cg, cp, slot] = mult2[j] > 1
+    CID = np.full(shape, -1, dtype=np.int64)
+    CID[cg, cp, slot] = np.arange(len(i))
+    gi = np.arange(G)
+    cidx = np.arange(C)[None, :]
+    back = np.zeros(shape, dtype=np.int64)
+    S = W[:, 0].copy()
+    aK, aE, aJ, aD = K[:, 0].copy(), E[:, 0].copy(), J[:, 0].copy(), Dv[:, 0].copy()
+    for t in range(1, P):
+        k_t, e_t, j_t, d_t = (
+            K[:, t, None, :C],
+            E[:, t, None, :C],
+            J[:, t, None, :C],
+            Dv[:, t, None, :C],
+        )
+        compat = (aK[:, :, None] < k_t) & (aE[:, :, None] < e_t + slack)
+        compat &= (aJ[:, :, None] != j_t) | DB[:, t, None, :C]
+        jump = np.minimum(np.abs(aD[:, :, None] - d_t), disp_scale)
+        tot = np.where(compat, S[:, :, None] - jump * (0.05 / disp_scale), -np.inf)
+        am = np.argmax(tot, axis=1)  # (G, C)
+        best = tot[gi[:, None], am, cidx]
+        carry = np.argmax(S, axis=1)
+        newS = np.empty_like(S)
+        newS[:, :C] = W[:, t, :C] + best
+        newS[:, C] = S[gi, carry]
+        back[:, t, :C] = am
+        back[:, t, C] = carry
+        nK, nE, nJ, nD = K[:, t].copy(), E[:, t].copy(), J[:, t].copy(), Dv[:, t].copy()
+        nK[:, C], nE[:, C], nJ[:, C], nD[:, C] = (
+            aK[gi, carry],
+            aE[gi, carry],
+            aJ[gi, carry],
+            aD[gi, carry],
+        )
+        S, aK, aE, aJ, aD = newS, nK, nE, nJ, nD
+    state = np.argmax(S, axis=1)
+    chosen = np.empty((P, G), dtype=np.int64)
+    for t in range(P - 1, -1, -1):
+        chosen[t] = CID[gi, t, state]
+        state = back[gi, t, state]
+    sel = chosen.ravel()
+    sel = sel[sel >= 0]
+    if len(sel) == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    out_i, out_j = i[sel], j[sel]
+    r = np.argsort(-gain[sel], kind="stable")
+    out_i, out_j = out_i[r], out_j[r]
+    keep = _occurrence(out_j) < mult2[out_j]
+    return out_i[keep].astype(np.intp), out_j[keep].astype(np.intp)
+
+
+def _match_best_no_lattice(
+    calib: Calibration, d1: NDArray[np.float64], d2: NDArray[np.float64], s: MatchSettings
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """``best`` without a laser lattice (a calibration that found none): rows by clustering,
+    rays ranked by the mid slope, the most dots per row chain (slower, and blind to the
+    two-step ambiguity that the lattice ends resolve)."""
     rig = calib.rig
     D = rig.baseline_mm
     H = rig.floor_depth_mm
@@ -302,32 +628,16 @@ def _match_best(
     lo, hi = D / (H + s.dropoff_depth_mm), D / s.min_depth_mm
     ok = (disp >= lo) & (disp <= hi)
     i, j, disp = i[ok], j[ok], disp[ok]
-    a_mid = 0.5 * (p1[i, 0] + p2[j, 0])
     b_mid = 0.5 * (p1[i, 1] + p2[j, 1])  # Y/Z: the slope of the laser ray, if the pair is true
-    lat = calib.lattice
-    if lat is not None:
-        la = (a_mid - lat.a0) / lat.step_a
-        kb = (b_mid - lat.b0) / lat.step_b
-        row_id = np.rint(la).astype(np.int64)
-        ray_id = np.rint(kb).astype(np.int64)
-        res_b = np.abs(kb - ray_id)
-        keep = (res_b <= s.lattice_tol) & (np.abs(la - row_id) <= s.lattice_tol)
-        keep &= (row_id >= lat.rows[0] - 1) & (row_id <= lat.rows[1] + 1)
-        i, j, disp, b_mid, row_id, ray_id, res_b = (
-            v[keep] for v in (i, j, disp, b_mid, row_id, ray_id, res_b)
-        )
-        c_lat = res_b / s.lattice_tol
-        slack = 0.3 * lat.step_b
-    else:
-        # No lattice known: group by camera-1 row, rank rays by the mid slope.
-        srt = np.sort(p1[:, 0])
-        gaps = np.concatenate([[0], np.cumsum(np.diff(srt) > 2 * tol_a)])
-        row_id = gaps[np.searchsorted(srt, p1[i, 0])].astype(np.int64)
-        ray_id = np.zeros(len(i), dtype=np.int64)
-        order = np.lexsort((b_mid, row_id))
-        ray_id[order] = np.arange(len(order))
-        c_lat = np.zeros(len(i))
-        slack = 3.0 / f
+    # No lattice known: group by camera-1 row, rank rays by the mid slope.
+    srt = np.sort(p1[:, 0])
+    gaps = np.concatenate([[0], np.cumsum(np.diff(srt) > 2 * tol_a)])
+    row_id = gaps[np.searchsorted(srt, p1[i, 0])].astype(np.int64)
+    ray_id = np.zeros(len(i), dtype=np.int64)
+    order = np.lexsort((b_mid, row_id))
+    ray_id[order] = np.arange(len(order))
+    c_lat = np.zeros(len(i))
+    slack = 3.0 / f
     if len(i) == 0:
         return np.zeros(0, np.intp), np.zeros(0, np.intp)
     c_floor = np.minimum(np.abs(disp - D / H) / max(hi - D / H, 1e-9), 1.0)

@@ -29,6 +29,7 @@ instead (for plant tests and for showing what happens without the daemon).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -46,7 +47,7 @@ from omnid.core.types import PointClass, PointCloud, StereoCapture
 from omnid.errors import OmnidError
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
-from omnid.sim.rider import HeadScript, KeyScript
+from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
 from omnid.sim.world import RigMount, cast_laser, rig_to_world
 
 log = logging.getLogger(__name__)
@@ -59,9 +60,9 @@ class SimSettings:
     """Rates and models of a simulated run (s, mm)."""
 
     physics_dt_s: float = 0.01
-    control_period_s: float = 0.05
+    control_period_s: float | None = None  # None: the controller's control.rate_hz (else 0.05)
     tilt_period_s: float = 0.01
-    perception_period_s: float = 0.2
+    perception_period_s: float | None = None  # None: the controller's perception.period_s (0.2)
     perception_latency_s: float = 0.1  # at least this long from capture to result
     perception: PerceptionMode = "truth"
     control_unit: Literal["emulator", "direct"] = "emulator"
@@ -70,6 +71,13 @@ class SimSettings:
     stop_on_contact: bool = True  # end the run at the first collision or fall
     record_period_s: float = 0.05
     seed: int = 0
+    rig: Literal["misaligned", "nominal"] = "misaligned"  # the cameras as installed
+    tilt_link: Literal["emulator", "direct"] = "emulator"  # head script through the GS311 codec
+    tilt_noise_deg: float = 0.0  # Gaussian noise of the emulated sensor (head jitter)
+    frame_interval_s: float = 1.0 / 30.0  # camera frame period: a flushed read waits this long
+    laser_timeout_s: float = 0.5  # perception waits this long for the laser to be reported
+    frame_timeout_s: float = 1.0  # and this long for a camera frame
+    record_seen: bool = True  # keep every non-floor point perception reported (off for soaks)
 
     def __post_init__(self) -> None:
         for name in (
@@ -80,13 +88,93 @@ class SimSettings:
             "watchdog_s",
             "record_period_s",
         ):
-            require(getattr(self, name) > 0, name, "must be positive")
+            v = getattr(self, name)
+            require(v is None or v > 0, name, "must be positive")
         require(self.perception_latency_s >= 0, "perception_latency_s", "must be ≥ 0")
         require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
+        require(self.tilt_noise_deg >= 0, "tilt_noise_deg", "must be ≥ 0")
+        for name in ("frame_interval_s", "laser_timeout_s", "frame_timeout_s"):
+            require(getattr(self, name) > 0, name, "must be positive")
 
-    def ticks(self, period_s: float) -> int:
+    def for_controller(self, controller: Any) -> SimSettings:
+        """These settings with unset periods taken from the controller's configuration (the
+        daemon core's ``control.rate_hz`` and ``perception.period_s``) or the defaults."""
+        cfg = getattr(controller, "config", None)
+        control = self.control_period_s
+        if control is None:
+            control = float(cfg.control.period_s) if cfg is not None else 0.05
+        perception = self.perception_period_s
+        if perception is None:
+            perception = float(cfg.perception.period_s) if cfg is not None else 0.2
+        return dataclasses.replace(self, control_period_s=control, perception_period_s=perception)
+
+    def ticks(self, period_s: float | None) -> int:
         """A period as a whole number of physics ticks (at least 1)."""
+        require(period_s is not None, "period", "must be resolved (for_controller)")
+        assert period_s is not None
         return max(1, round(period_s / self.physics_dt_s))
+
+
+FaultKind = Literal[
+    "tilt_unplugged", "camera_stopped", "cu_silent", "cu_corrupt", "perception_exception"
+]
+FAULT_KINDS: tuple[str, ...] = (
+    "tilt_unplugged",
+    "camera_stopped",
+    "cu_silent",
+    "cu_corrupt",
+    "perception_exception",
+)
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A fault injected from ``start_s`` to ``end_s`` (virtual s):
+
+    * ``tilt_unplugged`` — the GS311 adapter is pulled: no replies reach the tilt decoding;
+    * ``camera_stopped`` — the cameras deliver no frames (a perception cycle waits
+      ``frame_timeout_s`` and fails);
+    * ``cu_silent`` — the control unit hangs (the emulator's ``stall``: no replies, and its own
+      watchdog stops the motors);
+    * ``cu_corrupt`` — every reply has a flipped bit (CRC errors at the daemon);
+    * ``perception_exception`` — the vision pipeline raises.
+    """
+
+    kind: FaultKind
+    start_s: float
+    end_s: float = math.inf
+
+    def __post_init__(self) -> None:
+        require(self.kind in FAULT_KINDS, "kind", f"must be one of {', '.join(FAULT_KINDS)}")
+        require(self.end_s > self.start_s >= 0, "end_s", "must be after start_s ≥ 0")
+
+    def active(self, now_s: float) -> bool:
+        return self.start_s <= now_s < self.end_s
+
+
+class InjectedFault(RuntimeError):
+    """Raised by the simulated vision pipeline during a ``perception_exception`` fault."""
+
+
+def misaligned_rig(floor_depth_mm: float = 1100.0) -> StereoRig:
+    """The rig "as installed": mirror centres a few px off, f/K differing by a few per cent and
+    small camera rotations (1.5° and −1°) — what calibration (thesis 6.3) must find out."""
+    nom = StereoRig.nominal(floor_depth_mm=floor_depth_mm)
+    c1 = dataclasses.replace(
+        nom.cam1,
+        center_row_px=nom.cam1.center_row_px + 3.0,
+        center_col_px=nom.cam1.center_col_px - 2.0,
+        f_over_k_px=nom.cam1.f_over_k_px * 1.03,
+        rotation_rad=math.radians(1.5),
+    )
+    c2 = dataclasses.replace(
+        nom.cam2,
+        center_row_px=nom.cam2.center_row_px - 2.0,
+        center_col_px=nom.cam2.center_col_px + 4.0,
+        f_over_k_px=nom.cam2.f_over_k_px * 0.98,
+        rotation_rad=math.radians(-1.0),
+    )
+    return StereoRig(c1, c2, floor_depth_mm)
 
 
 @dataclass
@@ -101,6 +189,29 @@ class SimResult:
     seen: NDArray[np.float64]  # (K, 3) world x_mm, y_mm, PointClass code of non-floor points
     min_clearance_mm: float  # closest the footprint came to a box or a drop-off edge
     timings: dict[str, float] = field(default_factory=dict)
+    wheel_speeds: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    # (N, 3) t_s, left, right wheel surface speed mm/s, every physics tick
+    faults: tuple[Fault, ...] = ()
+    perception_errors: list[tuple[float, str]] = field(default_factory=list)
+
+    def time_to_standstill(self, t0_s: float, speed_tol_mm_s: float = 1.0) -> float:
+        """Seconds from ``t0_s`` until both wheels turn slower than ``speed_tol_mm_s`` (and stay
+        so for 0.1 s); ``inf`` if they never do."""
+        w = self.wheel_speeds
+        after = w[w[:, 0] >= t0_s - 1e-9]
+        still = np.all(np.abs(after[:, 1:]) < speed_tol_mm_s, axis=1)
+        for i in np.flatnonzero(still):
+            t = after[i, 0]
+            window = after[(after[:, 0] >= t) & (after[:, 0] <= t + 0.1)]
+            if np.all(np.abs(window[:, 1:]) < speed_tol_mm_s) and len(window) > 1:
+                return float(t - t0_s)
+        return math.inf
+
+    def max_speed_between(self, t0_s: float, t1_s: float) -> float:
+        """Fastest wheel surface speed (mm/s, absolute) between the two times."""
+        w = self.wheel_speeds
+        sel = w[(w[:, 0] >= t0_s) & (w[:, 0] <= t1_s)]
+        return float(np.abs(sel[:, 1:]).max()) if len(sel) else 0.0
 
     @property
     def collisions(self) -> list[tuple[float, Contact]]:
@@ -160,9 +271,12 @@ class DirectControlUnit:
         self.last_command_s = -math.inf
         self.seq = 0
         self.watchdog_trips = 0
+        self.silent = False  # a hung unit: takes no command, sends no reply
 
     def exchange(self, command: Any, now_s: float) -> Any:
-        """Deliver one command at ``now_s``; return the reply."""
+        """Deliver one command at ``now_s``; return the reply (None while ``silent``)."""
+        if self.silent:
+            return None
         self.seq = (self.seq + 1) & 0xFFFF
         self.last_command_s = now_s
         on = bool(command.enable)
@@ -320,6 +434,9 @@ class OpenLoopDriver:
     def on_key(self, command: str, now_s: float) -> None:
         pass
 
+    def on_joystick(self, reading: Any) -> None:
+        pass
+
     def on_perception(self, cloud: PointCloud, capture_time_s: float) -> None:
         pass
 
@@ -343,6 +460,79 @@ def _tilt_reading_type() -> Any:
     except ImportError:
         return SimTiltReading
     return TiltReading
+
+
+@dataclass(frozen=True)
+class SimJoystickReading:
+    """A joystick reading (the fields of ``omnid.devices.joystick.JoystickReading``)."""
+
+    forward: float
+    turn: float
+    timestamp_s: float
+
+
+def _joystick_reading_type() -> Any:
+    """The device layer's ``JoystickReading`` when present, else :class:`SimJoystickReading`."""
+    try:
+        from omnid.devices.joystick import JoystickReading  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        return SimJoystickReading
+    return JoystickReading
+
+
+class EmulatedTiltSensor:
+    """The GS311 emulator (``omnid.devices.emulators.gs311``) on the virtual clock, read the way
+    the tilt link reads it: the read-angles request ``0x50 0x50`` goes in as bytes, the reply
+    bytes go through the codec's parser (``Gs311Parser`` with the link's default
+    ``TiltSettings`` layout) and become a ``TiltReading`` — so the daemon core gets the angles
+    the real link would decode, 12-bit quantisation and checksum included.
+
+    ``unplugged`` (the ``tilt_unplugged`` fault) stops all replies, as a pulled adapter does.
+    """
+
+    def __init__(self, script: HeadScript, noise_deg: float = 0.0, seed: int = 0) -> None:
+        from omnid.devices import gs311_codec as codec
+        from omnid.devices.emulators.gs311 import Gs311Emulator
+        from omnid.devices.tilt import TiltReading, TiltSettings
+
+        self._t = 0.0
+        self._codec = codec
+        self._reading = TiltReading
+        fmt = TiltSettings().format
+        self.emulator = Gs311Emulator(
+            script.as_list(), fmt=fmt, noise_deg=noise_deg, seed=seed, clock=lambda: self._t
+        )
+        self.parser = codec.Gs311Parser(fmt)
+        self.unplugged = False
+        self.readings = 0
+
+    def poll(self, now_s: float) -> Any:
+        """One half-duplex request at ``now_s``: the decoded reading, or None (no valid reply)."""
+        self._t = now_s
+        if self.unplugged:
+            return None
+        self.parser.reset()
+        frames = self.parser.feed(self.emulator.handle(self._codec.READ_ANGLES_REQUEST))
+        if not frames:
+            return None
+        self.readings += 1
+        f = frames[-1]
+        return self._reading(f.roll_deg, f.pitch_deg, now_s)
+
+
+class DirectTiltSensor:
+    """The head script's angles without the byte link (for probes and tests of the script)."""
+
+    def __init__(self, script: HeadScript) -> None:
+        self.script = script
+        self._reading = _tilt_reading_type()
+        self.unplugged = False
+
+    def poll(self, now_s: float) -> Any:
+        if self.unplugged:
+            return None
+        roll, pitch = self.script.at(now_s)
+        return self._reading(roll, pitch, now_s)
 
 
 # -- perception ---------------------------------------------------------------------------------
@@ -369,8 +559,28 @@ def _clearance(points: NDArray[np.float64], rects: NDArray[np.float64]) -> float
     return float(np.hypot(dx, dy).min())
 
 
+@dataclass
+class _Cycle:
+    """The state of one perception cycle (mirrors ``omnid.daemon.run.Daemon.perception_loop``)."""
+
+    phase: Literal["idle", "wait_off", "mask", "wait_on", "base"] = "idle"
+    started_s: float = 0.0
+    phase_s: float = 0.0
+    mask_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mask_laser: bool = False
+    next_s: float = 0.0  # the next cycle starts no earlier than this
+
+
 class Simulator:
-    """One simulated chair in one course, driven by a controller on a virtual clock."""
+    """One simulated chair in one course, driven by a controller on a virtual clock.
+
+    With ``perception="pipeline"`` the simulator first *installs* the chair
+    (:meth:`install`): it renders a floor capture of an empty floor with the rig's cameras (by
+    default deliberately misaligned, :func:`misaligned_rig`) and runs
+    ``calibrate_from_capture`` on it; every perception cycle then renders mask and base frames
+    and runs ``pipeline.perceive(capture, calibration, "best")``. The daemon never learns the
+    true rig, only what calibration found.
+    """
 
     def __init__(
         self,
@@ -384,24 +594,39 @@ class Simulator:
         rig: StereoRig | None = None,
         pattern: DotPattern | None = None,
         progress: Callable[[float, Simulator], None] | None = None,
+        faults: Sequence[Fault] = (),
+        joystick: JoystickScript | None = None,
     ) -> None:
         self.course = course
         self.controller = controller
-        self.settings = settings or SimSettings()
+        self.settings = (settings or SimSettings()).for_controller(controller)
+        s = self.settings
         self.chair = Chair(chair_settings, pose=course.start_pose)
         self.rider = rider
         self.keys = keys
+        self.joystick = joystick
         self.mount = mount or RigMount()
-        self.rig = rig or StereoRig.nominal(floor_depth_mm=self.mount.height_mm)
+        if rig is None:
+            h = self.mount.height_mm
+            rig = (
+                misaligned_rig(h) if s.rig == "misaligned" else StereoRig.nominal(floor_depth_mm=h)
+            )
+        self.rig = rig
         self.pattern = pattern or DotPattern()
-        self.control_unit = make_control_unit(
-            self.chair, self.settings.control_unit, self.settings.watchdog_s
-        )
+        self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
+        self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
+        if rider is not None:
+            if s.tilt_link == "emulator":
+                self.tilt = EmulatedTiltSensor(rider, s.tilt_noise_deg, s.seed)
+            else:
+                self.tilt = DirectTiltSensor(rider)
+        self.faults = tuple(faults)
         self.progress = progress
         self.now_s = 0.0
-        self._rng = np.random.default_rng(self.settings.seed)
-        self._calib: Any = None
-        if self.settings.perception == "pipeline":
+        self._rng = np.random.default_rng(s.seed)
+        self.calibration: Any = None
+        self.install_s = 0.0
+        if s.perception == "pipeline":
             try:
                 import omnid.core.calibration
                 import omnid.core.pipeline  # noqa: F401
@@ -410,26 +635,60 @@ class Simulator:
                     f"perception 'pipeline' needs the vision pipeline, which is not in this "
                     f"build ({exc}); use perception 'truth'"
                 ) from exc
+            self.install()
         box_rects = [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
         drop_rects = [
             (d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs
         ]
         self._box_rects = np.array(box_rects, dtype=np.float64).reshape(-1, 4)
         self._drop_rects = np.array(drop_rects, dtype=np.float64).reshape(-1, 4)
+        self._last_status: Any = None
+        self._active: set[str] = set()
+        # Laser hits per pose: a chair standing still (refused, resting) sees the same dots, so
+        # truth perception casts them once per pose; fresh noise is drawn on every use.
+        self._hits_cache: dict[tuple[float, float, float], Any] = {}
+
+    # -- installation -------------------------------------------------------------------------
+
+    def install(self) -> Any:
+        """Calibrate the rig as an installer would: one capture of an empty floor ``H`` below
+        the mirrors (laser on), ``calibrate_from_capture``; the result is what perception uses."""
+        from omnid.core.calibration import calibrate_from_capture
+        from omnid.sim.render import render_capture
+
+        w0 = time.perf_counter()
+        floor = self.pattern.on_plane(self.mount.height_mm)
+        cap = render_capture(self.rig, floor, seed=self.settings.seed + 7919)
+        self.calibration = calibrate_from_capture(cap, self.mount.height_mm, self.rig.baseline_mm)
+        self.install_s = time.perf_counter() - w0
+        return self.calibration
 
     # -- camera views -------------------------------------------------------------------------
 
-    def laser_hits(self) -> Any:
-        """``cast_laser`` at the chair's current pose."""
-        return cast_laser(self.course.world, self.chair.pose, self.mount, self.pattern, self.rig)
+    def laser_hits(self, pose: tuple[float, float, float] | None = None) -> Any:
+        """``cast_laser`` at ``pose`` (default: the chair's current pose), remembered for the
+        last few distinct poses (the world does not change during a run)."""
+        key = pose or self.chair.pose
+        hits = self._hits_cache.get(key)
+        if hits is None:
+            hits = cast_laser(self.course.world, key, self.mount, self.pattern, self.rig)
+            if len(self._hits_cache) >= 64:
+                self._hits_cache.pop(next(iter(self._hits_cache)))
+            self._hits_cache[key] = hits
+        return hits
 
-    def render(self, laser_on: bool | None = None, seed: int | None = None) -> StereoCapture:
-        """A mask/base capture at the current pose; the base shows dots only if the laser is on
-        (by default: as the control unit has switched it)."""
+    def render(
+        self,
+        laser_on: bool | None = None,
+        seed: int | None = None,
+        pose: tuple[float, float, float] | None = None,
+    ) -> StereoCapture:
+        """A mask/base capture at ``pose`` (default: now); the base shows dots only if the laser
+        is on (by default: as the control unit has switched it)."""
         from omnid.sim.render import RenderOptions, render_camera_pair
 
         on = self.control_unit.laser_on if laser_on is None else laser_on
-        hits = self.laser_hits()
+        hits = self.laser_hits(pose)
         rng = np.random.default_rng(self._rng.integers(1 << 31) if seed is None else seed)
         opts = RenderOptions()
         images: list[NDArray[np.uint8]] = []
@@ -445,8 +704,8 @@ class Simulator:
 
     # -- perception ---------------------------------------------------------------------------
 
-    def _truth_cloud(self) -> PointCloud:
-        hits = self.laser_hits()
+    def _truth_cloud(self, pose: tuple[float, float, float] | None = None) -> PointCloud:
+        hits = self.laser_hits(pose)
         vis = hits.visible
         xyz = hits.xyz[vis]
         s = self.settings.truth_noise_mm
@@ -461,29 +720,75 @@ class Simulator:
             floor_depth_mm=self.mount.height_mm,
         )
 
-    def _pipeline_cloud(self) -> PointCloud:
-        from omnid.core.pipeline import perceive  # type: ignore[import-not-found,unused-ignore]
+    def capture(
+        self,
+        mask_pose: tuple[float, float, float],
+        mask_laser: bool,
+        base_pose: tuple[float, float, float],
+        base_laser: bool,
+    ) -> StereoCapture:
+        """The mask and base frames of one cycle, each showing the laser as the control unit had
+        actually switched it when the frame was taken. The camera's own scene (background,
+        texture) is the same in both, as it is for a camera fixed to the chair."""
+        seed = int(self._rng.integers(1 << 31))
+        base = self.render(laser_on=base_laser, seed=seed, pose=base_pose)
+        if not mask_laser:
+            mask1, mask2 = base.mask1, base.mask2
+        else:  # the laser was still on: the "mask" frames show dots
+            lit = self.render(laser_on=True, seed=seed, pose=mask_pose)
+            mask1, mask2 = lit.base1, lit.base2
+        return StereoCapture(mask1, base.base1, mask2, base.base2, self.now_s)
 
-        if self._calib is None:
-            from omnid.core.calibration import (  # type: ignore[import-not-found,unused-ignore]
-                calibrate_from_capture,
-            )
-            from omnid.sim.render import render_capture
+    def _perceive(self, capture: StereoCapture | None, base_pose: Any, base_laser: bool) -> Any:
+        """The vision step the daemon's worker runs (timed by the caller)."""
+        if "perception_exception" in self._active:
+            raise InjectedFault("injected fault: the vision pipeline raised")
+        mode = self.settings.perception
+        if mode == "off" or not base_laser or (mode == "pipeline" and capture is None):
+            return PointCloud(floor_depth_mm=self.mount.height_mm)
+        if mode == "truth":
+            return self._truth_cloud(base_pose)
+        from omnid.core.pipeline import perceive
 
-            floor = self.pattern.on_plane(self.mount.height_mm)
-            cap = render_capture(self.rig, floor, seed=self.settings.seed)
-            self._calib = calibrate_from_capture(cap, self.mount.height_mm, self.rig.baseline_mm)
-        cloud: PointCloud = perceive(self.render(laser_on=self.control_unit.laser_on), self._calib)
-        return cloud
+        assert capture is not None
+        return perceive(capture, self.calibration, "best")
 
     def perceive_now(self) -> PointCloud:
-        """The point cloud the daemon would get from a capture at the current pose."""
+        """The point cloud the daemon would get from a capture at the current pose (laser as
+        switched now, for mask and base)."""
         mode = self.settings.perception
-        if mode == "off" or not self.control_unit.laser_on:
+        on = bool(self.control_unit.laser_on)
+        if mode == "off" or not on:
             return PointCloud(floor_depth_mm=self.mount.height_mm)
         if mode == "truth":
             return self._truth_cloud()
-        return self._pipeline_cloud()
+        pose = self.chair.pose
+        cloud: PointCloud = self._perceive(self.capture(pose, False, pose, on), pose, on)
+        return cloud
+
+    # -- faults -------------------------------------------------------------------------------
+
+    def _apply_faults(self, now: float) -> None:
+        active: set[str] = {str(f.kind) for f in self.faults if f.active(now)}
+        if active == self._active:
+            return
+        for name in sorted(active - self._active):
+            log.warning("simulator: fault %s injected at t=%.2f s", name, now)
+        for gone in sorted(self._active - active):
+            log.warning("simulator: fault %s cleared at t=%.2f s", gone, now)
+        emu = getattr(self.control_unit, "emulator", None)
+        if emu is not None:
+            if {"cu_silent", "cu_corrupt"} & (self._active - active):
+                emu.recover()
+            if "cu_silent" in active:
+                emu.stall()
+            if "cu_corrupt" in active:
+                emu.corrupt_replies(None)
+        if isinstance(self.control_unit, DirectControlUnit):
+            self.control_unit.silent = bool({"cu_silent", "cu_corrupt"} & active)
+        if self.tilt is not None:
+            self.tilt.unplugged = "tilt_unplugged" in active
+        self._active = active
 
     # -- the loop -----------------------------------------------------------------------------
 
@@ -504,6 +809,10 @@ class Simulator:
             out.append((now, text))
         return text
 
+    def _laser_reported(self, on: bool, since_s: float) -> bool:
+        st = self._last_status
+        return st is not None and bool(st.laser_on) == on and st.timestamp_s >= since_s
+
     def run(self, duration_s: float) -> SimResult:
         """Simulate ``duration_s`` virtual seconds; returns the trajectory, contacts, refusals,
         what perception saw and timing figures."""
@@ -513,64 +822,105 @@ class Simulator:
         n_ticks = round(duration_s / dt)
         k_ctrl, k_tilt = s.ticks(s.control_period_s), s.ticks(s.tilt_period_s)
         k_perc, k_rec = s.ticks(s.perception_period_s), s.ticks(s.record_period_s)
+        ctl = self.controller
+        # A daemon core runs the real perception cycle (laser off → mask → laser on → base);
+        # simple probes get a capture every period with the laser as it is.
+        cycle = _Cycle() if hasattr(ctl, "capturing") and hasattr(ctl, "laser_on") else None
+        joy_reading = _joystick_reading_type()
+        last_pose: tuple[float, float, float] | None = None
 
-        tilt_type = _tilt_reading_type() if self.rider is not None else None
-
-        traj: list[tuple[float, float, float, float]] = []
-        cmds: list[tuple[float, float, float, float, float]] = []
+        # Records preallocated for the whole run (no per-tick allocations; a soak's memory
+        # figure then shows the daemon, not the recorder).
+        traj = np.empty((n_ticks // k_rec + 2, 4))
+        speeds = np.empty((n_ticks + 1, 3))
+        cmds = np.empty((n_ticks // k_ctrl + 1, 5))
+        n_traj = n_speed = n_cmd = 0
         contacts: list[tuple[float, Contact]] = []
         seen: list[NDArray[np.float64]] = []
         pending: list[tuple[float, float, PointCloud, tuple[float, float, float]]] = []
         t_perc: list[float] = []
-        t_ctrl: list[float] = []
+        ctrl_n, ctrl_sum, ctrl_max = 0, 0.0, 0.0  # control-step wall times, s
+        errors: list[tuple[float, str]] = []
         min_clear = math.inf
         refusals: list[tuple[float, str]] = []
         last_refusal = ""
         wall0 = time.perf_counter()
         last_progress = -math.inf
+
+        def finish(t_cap: float, pose: Any, cap: StereoCapture | None, laser: bool) -> None:
+            w0 = time.perf_counter()
+            try:
+                cloud = self._perceive(cap, pose, laser)
+            except Exception as exc:  # as the daemon's perception loop: log, no result
+                errors.append((now, f"{type(exc).__name__}: {exc}"))
+                log.warning("perception cycle failed at t=%.2f s: %s", now, exc)
+                return
+            took = time.perf_counter() - w0
+            t_perc.append(took)
+            pending.append((now + max(took, s.perception_latency_s), t_cap, cloud, pose))
+
         for k in range(n_ticks + 1):
             now = k * dt
             self.now_s = now
-            if self.rider is not None and tilt_type is not None and k % k_tilt == 0:
-                roll, pitch = self.rider.at(now)
-                self.controller.on_tilt(tilt_type(roll, pitch, now))
+            self._apply_faults(now)
+            if self.tilt is not None and k % k_tilt == 0:
+                reading = self.tilt.poll(now)
+                if reading is not None:
+                    ctl.on_tilt(reading)
+            if (
+                self.joystick is not None
+                and k % k_tilt == 0
+                and "tilt_unplugged" not in self._active
+            ):
+                fwd, turn = self.joystick.at(now)
+                ctl.on_joystick(joy_reading(fwd, turn, now))
             if self.keys is not None:
                 for _, command in self.keys.between(now - dt, now):
-                    self.controller.on_key(command, now)
+                    ctl.on_key(command, now)
             # Deliver finished perception results (charged with their computing time).
             while pending and pending[0][0] <= now + 1e-9:
                 _, t_cap, cloud, pose = pending.pop(0)
-                self.controller.on_perception(cloud, t_cap)
+                ctl.on_perception(cloud, t_cap)
                 keep = cloud.classes != PointClass.FLOOR
-                if np.any(keep):
+                if s.record_seen and np.any(keep):
                     w = rig_to_world(cloud.xyz[keep], pose, self.mount)
                     seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
-            if k % k_perc == 0:
-                w0 = time.perf_counter()
-                cloud = self.perceive_now()
-                took = time.perf_counter() - w0
-                t_perc.append(took)
-                ready = now + max(took, s.perception_latency_s)
-                pending.append((ready, now, cloud, self.chair.pose))
+            if cycle is None:
+                if k % k_perc == 0:
+                    on = bool(self.control_unit.laser_on)
+                    pose = self.chair.pose
+                    cap = (
+                        self.capture(pose, False, pose, on)
+                        if s.perception == "pipeline" and on
+                        else None
+                    )
+                    finish(now, pose, cap, on)
+            else:
+                self._perception_cycle(cycle, now, finish, errors)
             if k % k_ctrl == 0:
                 w0 = time.perf_counter()
-                command = self.controller.step(now)
-                t_ctrl.append(time.perf_counter() - w0)
+                command = ctl.step(now)
+                took_ctrl = time.perf_counter() - w0
+                ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
+                ctrl_max = max(ctrl_max, took_ctrl)
                 last_refusal = self._note_decision(now, refusals, last_refusal)
                 status = self.control_unit.exchange(command, now)
                 if status is not None:
-                    self.controller.on_status(status)
-                cmds.append(
-                    (
-                        now,
-                        float(command.left_duty),
-                        float(command.right_duty),
-                        float(command.laser_on),
-                        float(command.enable),
-                    )
+                    self._last_status = status
+                    ctl.on_status(status)
+                cmds[n_cmd] = (
+                    now,
+                    float(command.left_duty),
+                    float(command.right_duty),
+                    float(command.laser_on),
+                    float(command.enable),
                 )
+                n_cmd += 1
+            speeds[n_speed] = (now, self.chair.left_speed_mm_s, self.chair.right_speed_mm_s)
+            n_speed += 1
             if k % k_rec == 0:
-                traj.append((now, *self.chair.pose))
+                traj[n_traj] = (now, *self.chair.pose)
+                n_traj += 1
                 min_clear = min(
                     min_clear,
                     _clearance(_perimeter(self.chair), self._box_rects),
@@ -581,7 +931,9 @@ class Simulator:
                 if self.progress is not None and now - last_progress >= 1.0:
                     last_progress = now
                     self.progress(now, self)
-            found = self.chair.contacts(self.course.world)
+            pose_now = self.chair.pose
+            found = self.chair.contacts(self.course.world) if pose_now != last_pose else []
+            last_pose = pose_now  # a chair that has not moved touches nothing new
             new = [c for c in found if all(c != old for _, old in contacts)]
             if new:
                 min_clear = 0.0
@@ -589,7 +941,8 @@ class Simulator:
                 log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
                 contacts.append((now, c))
             if new and s.stop_on_contact:
-                traj.append((now, *self.chair.pose))
+                traj[n_traj] = (now, *self.chair.pose)
+                n_traj += 1
                 break
             if k < n_ticks:
                 self.control_unit.advance(now, dt)
@@ -600,19 +953,95 @@ class Simulator:
             "realtime_factor": self.now_s / wall if wall > 0 else math.inf,
             "perception_mean_ms": 1e3 * float(np.mean(t_perc)) if t_perc else 0.0,
             "perception_max_ms": 1e3 * float(np.max(t_perc)) if t_perc else 0.0,
-            "control_step_mean_ms": 1e3 * float(np.mean(t_ctrl)) if t_ctrl else 0.0,
-            "control_step_max_ms": 1e3 * float(np.max(t_ctrl)) if t_ctrl else 0.0,
+            "control_step_mean_ms": 1e3 * ctrl_sum / ctrl_n if ctrl_n else 0.0,
+            "control_step_max_ms": 1e3 * ctrl_max,
+            "control_steps": float(ctrl_n),
             "perception_cycles": float(len(t_perc)),
+            "perception_errors": float(len(errors)),
+            "install_s": self.install_s,
             "watchdog_trips": float(self.control_unit.watchdog_trips),
             "bytes_link": float(isinstance(self.control_unit, EmulatedControlUnit)),
+            "tilt_bytes_link": float(isinstance(self.tilt, EmulatedTiltSensor)),
         }
         return SimResult(
             duration_s=self.now_s,
-            trajectory=np.array(traj, dtype=np.float64).reshape(-1, 4),
-            commands=np.array(cmds, dtype=np.float64).reshape(-1, 5),
+            trajectory=traj[:n_traj].copy(),
+            commands=cmds[:n_cmd].copy(),
             contacts=contacts,
             refusals=refusals,
             seen=np.vstack(seen) if seen else np.zeros((0, 3)),
             min_clearance_mm=min_clear,
             timings=timings,
+            wheel_speeds=speeds[:n_speed].copy(),
+            faults=self.faults,
+            perception_errors=errors,
         )
+
+    def _perception_cycle(
+        self,
+        c: _Cycle,
+        now: float,
+        finish: Callable[[float, Any, StereoCapture | None, bool], None],
+        errors: list[tuple[float, str]],
+    ) -> None:
+        """Advance the perception cycle of ``omnid run`` by one tick: laser off → wait until
+        the control unit reports it off (at most ``laser_timeout_s``) → a flushed mask frame →
+        laser on → wait until reported on → a flushed base frame → perceive. Frames take
+        ``frame_interval_s``; with the cameras stopped a read fails after ``frame_timeout_s``."""
+        s = self.settings
+        ctl = self.controller
+        camera_ok = "camera_stopped" not in self._active
+
+        def fail(why: str) -> None:
+            errors.append((now, why))
+            log.warning("perception cycle failed at t=%.2f s: %s", now, why)
+            ctl.capturing = False
+            ctl.laser_on = True
+            c.phase = "idle"
+            c.next_s = max(c.started_s + float(s.perception_period_s or 0.0), now)
+
+        if c.phase == "idle":
+            if now + 1e-9 < c.next_s:
+                return
+            c.started_s = c.phase_s = now
+            ctl.capturing = True
+            ctl.laser_on = False
+            c.phase = "wait_off"
+        if c.phase == "wait_off":
+            if self._laser_reported(False, c.phase_s) or now - c.phase_s >= s.laser_timeout_s:
+                c.phase, c.phase_s = "mask", now  # run.py reads the mask even after a timeout
+            else:
+                return
+        if c.phase == "mask":
+            if not camera_ok:
+                if now - c.phase_s >= s.frame_timeout_s:
+                    fail("camera: no frame within frame_timeout_s")
+                return
+            if now - c.phase_s + 1e-9 < s.frame_interval_s:
+                return
+            c.mask_pose, c.mask_laser = self.chair.pose, bool(self.control_unit.laser_on)
+            ctl.laser_on = True
+            c.phase, c.phase_s = "wait_on", now
+        if c.phase == "wait_on":
+            if self._laser_reported(True, c.phase_s):
+                c.phase, c.phase_s = "base", now
+            elif now - c.phase_s >= s.laser_timeout_s:
+                fail("control unit did not report the laser on")
+                return
+            else:
+                return
+        if c.phase == "base":
+            if not camera_ok:
+                if now - c.phase_s >= s.frame_timeout_s:
+                    fail("camera: no frame within frame_timeout_s")
+                return
+            if now - c.phase_s + 1e-9 < s.frame_interval_s:
+                return
+            pose, laser = self.chair.pose, bool(self.control_unit.laser_on)
+            ctl.capturing = False
+            c.phase = "idle"
+            c.next_s = max(c.started_s + float(s.perception_period_s or 0.0), now)
+            cap = None
+            if s.perception == "pipeline":
+                cap = self.capture(c.mask_pose, c.mask_laser, pose, laser)
+            finish(now, pose, cap, laser)
