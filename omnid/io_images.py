@@ -66,3 +66,35 @@ def read_capture(
     if gray:  # mixed gray/BGR: compare like with like (the laser is green)
         images = [img if img.ndim == 2 else np.ascontiguousarray(img[:, :, 1]) for img in images]
     return StereoCapture(images[0], images[1], images[2], images[3])
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically: a temporary file beside it, then a rename, so a
+    reader never sees half a file and a failed write leaves the old file alone. An unwritable
+    place raises :class:`InputError` naming ``path``."""
+    import os
+    import tempfile
+
+    p = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent or ".")
+    except OSError as exc:
+        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from exc
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, p)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from exc
+
+
+def write_png(path: str | Path, image: NDArray[np.uint8]) -> None:
+    """Encode an 8-bit gray or BGR image as PNG and write it atomically (see
+    :func:`write_bytes_atomic`)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
+        raise InputError(f"{path}: PNG encoding failed")
+    write_bytes_atomic(path, buf.tobytes())

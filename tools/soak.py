@@ -3,6 +3,9 @@
     python tools/soak.py                       # 300 simulated s per configuration
     python tools/soak.py --duration-s 1800     # a longer soak
     python tools/soak.py --controller core     # the daemon core drives (when it is in the build)
+    python tools/soak.py --rider --minutes 30 [--perception pipeline]
+                                               # the half-hour soak: daemon core at its configured
+                                               # rates, random joystick rider, cluttered room
 
 Measures, in one run on this machine:
 
@@ -63,12 +66,65 @@ def run_once(perception: str, duration_s: float, controller: str) -> tuple[float
     return wall, result.timings
 
 
+def rider_soak(minutes: float, perception: str, seed: int) -> int:
+    """The CI soak's setup (tests/scenarios/test_soak.py) for ``minutes``: prints wall time,
+    distance, contacts, refusals and resident memory once per simulated minute."""
+    import dataclasses
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "scenarios"))
+    from test_soak import cluttered_room, soak_settings  # type: ignore[import-not-found]
+
+    from omnid.sim.rider import random_ride
+    from omnid.sim.scenario import make_core
+
+    duration = 60.0 * minutes
+    settings = dataclasses.replace(soak_settings(), perception=perception, seed=seed)  # type: ignore[arg-type]
+
+    def progress(now_s: float, _sim: Simulator) -> None:
+        if int(now_s) % 60 == 0 and now_s > 0:
+            rss = int(Path("/proc/self/statm").read_text().split()[1]) * 4096 / 2**20
+            print(
+                f"  t={now_s / 60:4.0f} min  wall {time.perf_counter() - w0:6.1f} s  RSS {rss:.0f} MB"
+            )
+
+    sim = Simulator(
+        cluttered_room(),
+        make_core(joystick=True),
+        settings,
+        joystick=random_ride(seed, duration),
+        progress=progress,
+    )
+    w0 = time.perf_counter()
+    r = sim.run(duration)
+    wall = time.perf_counter() - w0
+    t = r.timings
+    print(
+        f"rider soak, {minutes:.0f} simulated min, perception {perception}: {wall:.1f} s wall "
+        f"({duration / wall:.1f}x real time); control {t['control_steps']:.0f} steps "
+        f"{t['control_step_mean_ms']:.2f} ms mean / {t['control_step_max_ms']:.1f} ms max; "
+        f"perception {t['perception_cycles']:.0f} cycles {t['perception_mean_ms']:.1f} ms mean"
+    )
+    print(
+        f"distance {r.distance_mm / 1000:.1f} m, collisions {len(r.collisions)}, falls "
+        f"{len(r.falls)}, closest approach {r.min_clearance_mm:.0f} mm, refusals "
+        f"{len(r.refusals)}, peak RSS "
+        f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB"
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
     ap.add_argument("--duration-s", type=float, default=300.0)
     ap.add_argument("--controller", choices=["open-loop", "core"], default="open-loop")
     ap.add_argument("--frames", type=int, default=100, help="frame-server round trips")
+    ap.add_argument("--rider", action="store_true", help="the random-rider soak only")
+    ap.add_argument("--minutes", type=float, default=30.0, help="rider soak length (30)")
+    ap.add_argument("--perception", choices=["truth", "pipeline"], default="truth")
+    ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args(argv)
+    if args.rider:
+        return rider_soak(args.minutes, args.perception, args.seed)
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(

@@ -1,4 +1,6 @@
-"""``omnid experiment table72 [--variant pixels|detected] [--seed N]`` — reproduce thesis Table 7.2.
+"""``omnid experiment table72 [--variant pixels|detected] [--seed N]`` — reproduce thesis Table 7.2;
+``omnid experiment table74 [--seed N] [--planes ...] [--rig misaligned|nominal]`` — Table 7.4
+(:mod:`omnid.experiments.table74`).
 
 Prints Markdown tables: for ``pixels`` the thesis' layout (per plane and weighted, X/Y/Z mean
 relative error for each noise column) with the thesis' numbers in brackets, for the thesis'
@@ -28,11 +30,29 @@ def _table72(args: argparse.Namespace) -> int:
     return 0
 
 
+def _table74(args: argparse.Namespace) -> int:
+    from omnid.errors import InputError
+    from omnid.experiments import table74
+
+    known = table74.plane_names()
+    names = known if args.planes is None else [n for n in args.planes.split(",") if n]
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise InputError(
+            f"--planes: unknown layout {unknown or names!r} (known: {', '.join(known)})"
+        )
+    calib, rig, results = table74.run_table74(
+        seed=args.seed, names=names, misaligned=args.rig == "misaligned"
+    )
+    print(table74.format_table74(calib, rig, results))
+    return 0
+
+
 def register(subparsers: Any) -> None:
     """Add ``omnid experiment`` and its experiments to the CLI."""
     parser = subparsers.add_parser(
         "experiment",
-        help="reproduce the thesis' experiments (Table 7.2)",
+        help="reproduce the thesis' experiments (Tables 7.2, 7.4)",
         description="Reproduce the thesis' experiments and print their tables (Markdown).",
     )
     experiments = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
@@ -52,3 +72,28 @@ def register(subparsers: Any) -> None:
         "--grid-step-mm", type=float, default=100.0, help="grid spacing on each plane (default 100)"
     )
     t72.set_defaults(func=_table72)
+    t74 = experiments.add_parser(
+        "table74",
+        help="horizontal and vertical planes: error distributions per method (thesis Table 7.4)",
+        description=(
+            "Thesis Table 7.4: a horizontal plane 680/800/930/1100 mm below the mirrors and a "
+            "vertical plane 550-1750 mm ahead, rendered with misaligned cameras; the rig is "
+            "calibrated on the empty floor, each layout perceived with each method (its own "
+            "detector, matching, triangulation). Prints the error distribution of the plane's "
+            "axis beside the thesis' numbers, per-axis means (Table 7.5) and matched / wrong / "
+            "classified."
+        ),
+    )
+    t74.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    t74.add_argument(
+        "--planes",
+        default=None,
+        help="comma-separated layouts (default: all ten, e.g. vertical_550)",
+    )
+    t74.add_argument(
+        "--rig",
+        choices=["misaligned", "nominal"],
+        default="misaligned",
+        help="misaligned cameras (default) or the nominal, perfectly aligned rig",
+    )
+    t74.set_defaults(func=_table74)

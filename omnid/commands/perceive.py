@@ -1,12 +1,21 @@
 """``omnid perceive``: one stereo capture → classified 3-D laser dots (SPEC §6).
 
 With ``--json`` it prints ONE JSON object ``{"points": [{x, y, z, h, r1, c1, r2, c2, class}, ...],
-...}`` (mm in the rig frame of SPEC §2; pixel positions as floats)."""
+...}`` (mm in the rig frame of SPEC §2; pixel positions as floats); without it a short summary
+for a person: points per class, the matched fraction, the nearest obstacle and drop-off ahead.
+``--ply`` and ``--png`` also write the cloud (PLY) and a top-down picture of the free-space map
+built from this capture with the points over it; both are written atomically.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from omnid.core.types import PointCloud
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -18,35 +27,116 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--calib", required=True, metavar="CALIB.yaml", help="calibration file")
     for name in ("mask1", "base1", "mask2", "base2"):
         p.add_argument(f"--{name}", required=True, metavar="PNG", help=f"{name} image")
-    p.add_argument("--method", choices=["thesis", "best"], default="best")
     p.add_argument(
-        "--detect", choices=["thesis", "best"], default="best", help="dot detector (default best)"
+        "--method",
+        choices=["thesis", "best"],
+        default="best",
+        help="thesis: the thesis' detector, matching and triangulation end to end; best: ours",
+    )
+    p.add_argument(
+        "--detect",
+        choices=["thesis", "best"],
+        default=None,
+        help="dot detector (default: the one of --method)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--ply", metavar="PATH", help="also write the classified cloud as PLY")
+    p.add_argument(
+        "--png", metavar="PATH", help="also write a top-down picture of the free space and dots"
+    )
+    p.add_argument(
+        "--half-width-mm",
+        type=float,
+        default=350.0,
+        help="half width of the corridor ahead in which the nearest obstacle is sought (350)",
+    )
+    p.add_argument(
+        "--rig-x-offset-mm",
+        type=float,
+        default=300.0,
+        help="how far the vision rig sits ahead of the wheel axle, for --png (300)",
+    )
     p.set_defaults(func=run)
+
+
+def nearest_ahead_mm(cloud: PointCloud, label: int, half_width_mm: float) -> float:
+    """Smallest X (mm ahead of the vision system) of the points of class ``label`` within
+    ``half_width_mm`` of the rig's X axis; ``inf`` when there is none. A drop-off point below
+    the floor counts where its ray crossed floor level (X·H/Z): the floor ends before there."""
+    import numpy as np
+
+    xyz = cloud.xyz[cloud.classes == label]
+    if len(xyz) == 0:
+        return math.inf
+    x = xyz[:, 0].copy()
+    H = cloud.floor_depth_mm
+    below = xyz[:, 2] > H
+    x[below] = x[below] * H / xyz[below, 2]
+    ahead = (x > 0) & (np.abs(xyz[:, 1]) <= half_width_mm)
+    return float(x[ahead].min()) if ahead.any() else math.inf
 
 
 def run(args: argparse.Namespace) -> int:
     from omnid.core.calibration import Calibration
-    from omnid.core.pipeline import PerceptionSettings, perceive
+    from omnid.core.pipeline import PerceptionSettings, perceive_detailed
     from omnid.core.types import PointClass
-    from omnid.io_images import read_capture
+    from omnid.errors import InputError
+    from omnid.io_images import read_capture, write_bytes_atomic, write_png
 
+    if not (args.half_width_mm > 0 and math.isfinite(args.half_width_mm)):
+        raise InputError(f"--half-width-mm must be a positive number, got {args.half_width_mm}")
     calib = Calibration.load(args.calib)
     capture = read_capture(
         args.mask1, args.base1, args.mask2, args.base2, calib.rig.cam1.image_shape
     )
-    cloud = perceive(capture, calib, args.method, PerceptionSettings(detection_method=args.detect))
+    result = perceive_detailed(
+        capture, calib, args.method, PerceptionSettings(detection_method=args.detect)
+    )
+    cloud = result.cloud
+    if args.ply:
+        from omnid.core.export import ply_bytes
+
+        write_bytes_atomic(args.ply, ply_bytes(cloud))
+    if args.png:
+        from omnid.core.export import render_topdown
+        from omnid.core.freespace import FreeSpaceMap
+
+        fmap = FreeSpaceMap()
+        fmap.update(cloud, args.rig_x_offset_mm)
+        write_png(args.png, render_topdown(fmap, cloud, rig_x_offset_mm=args.rig_x_offset_mm))
     counts = {c.label: int((cloud.classes == c).sum()) for c in PointClass}
+    nearest = {
+        c.label: nearest_ahead_mm(cloud, int(c), args.half_width_mm)
+        for c in (PointClass.OBSTACLE, PointClass.DROPOFF)
+    }
     if args.json:
         doc = {
             "method": args.method,
+            "detector": result.detection_method,
             "floor_depth_mm": calib.floor_depth_mm,
             "counts": counts,
+            "dots1": len(result.dots1),
+            "dots2": len(result.dots2),
+            "matched_fraction": result.matched_fraction,
+            "nearest_obstacle_mm": None if math.isinf(nearest["obstacle"]) else nearest["obstacle"],
+            "nearest_dropoff_mm": None if math.isinf(nearest["dropoff"]) else nearest["dropoff"],
             "points": cloud.to_records(),
         }
         print(json.dumps(doc))
-    else:
-        parts = ", ".join(f"{v} {k}" for k, v in counts.items())
-        print(f"{len(cloud)} points ({parts})")
+        return 0
+    parts = ", ".join(f"{v} {k}" for k, v in counts.items())
+    print(
+        f"{len(cloud)} points ({parts}); method {args.method}, detector {result.detection_method}"
+    )
+    print(
+        f"matched {100 * result.matched_fraction:.0f} % "
+        f"({len(cloud)} pairs of {len(result.dots1)} / {len(result.dots2)} dots found)"
+    )
+    for label, what in (("obstacle", "obstacle"), ("dropoff", "drop-off")):
+        d = nearest[label]
+        where = f"{d:.0f} mm" if math.isfinite(d) else "none seen"
+        print(f"nearest {what} ahead (within ±{args.half_width_mm:g} mm): {where}")
+    for path in (args.ply, args.png):
+        if path:
+            print(f"wrote {path}")
     return 0

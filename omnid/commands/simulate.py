@@ -34,14 +34,21 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--serve",
         metavar="SOCKET",
-        help="also serve camera frames on this Unix socket (sim+unix://) while running in real time",
+        help="real time for an external `omnid run`: a control-unit pty (printed) and camera "
+        "frames on this Unix socket (sim+unix://) until SIGTERM or --duration-s",
+    )
+    p.add_argument(
+        "--floor-capture",
+        metavar="DIR",
+        help="write mask1/base1/mask2/base2.png of an empty floor as the simulated rig sees it "
+        "(for `omnid calibrate`, floor depth = the rig's mount height) before running",
     )
     p.set_defaults(func=handle)
 
 
 def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
     """Options shared by ``simulate`` and ``demo``."""
-    p.add_argument("--course", default="builtin", help="builtin (default) or empty-room")
+    p.add_argument("--course", default="builtin", help="builtin (default), empty-room or box-ahead")
     p.add_argument("--duration-s", type=float, default=45.0, help="simulated seconds (45)")
     p.add_argument(
         "--perception",
@@ -80,6 +87,8 @@ def handle(args: argparse.Namespace) -> int:
         from omnid.sim.simulator import OpenLoopDriver
 
         controller = OpenLoopDriver(parse_drive(args.drive))
+    if getattr(args, "floor_capture", None):
+        scenario.write_floor_capture(args.floor_capture, args.seed)
     if args.serve:
         return scenario.serve_real_time(args, controller)
     return scenario.run_and_report(args, controller, title="omnid simulate")

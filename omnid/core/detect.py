@@ -303,73 +303,179 @@ def _thesis_model_test(
 # Best method: sub-pixel centres.
 
 
-def _noise_sigma(d: NDArray[np.float32]) -> float:
+def _laser_difference(mask: NDArray, base: NDArray, weights: tuple[float, float, float]) -> NDArray:
+    """Signed base − mask in the laser's gray (see :func:`to_gray`), gray levels.
+
+    8-bit images whose laser gray is one channel give exact int16 (half the memory traffic
+    of float32, and integers let :func:`_noise_sigma` count instead of sort); others float32.
+    """
+    if mask.dtype == np.uint8:
+        if mask.ndim == 2:
+            return np.subtract(base, mask, dtype=np.int16)
+        nz = np.flatnonzero(np.asarray(weights, dtype=np.float64))
+        if len(nz) == 1:
+            k = int(nz[0])
+            return np.subtract(base[:, :, k], mask[:, :, k], dtype=np.int16)
+    return to_gray(base, weights) - to_gray(mask, weights)
+
+
+def _noise_sigma(d: NDArray) -> float:
     """Robust noise sigma of an image, gray levels: MAD of horizontal neighbour differences
-    (on a subsample of rows), divided by √2 for the difference of two samples."""
+    (on a subsample of rows), divided by √2 for the difference of two samples.
+
+    The dark, saturated or constant parts say nothing about noise: zero differences are left
+    out. Integer images take the median from a histogram (same value as ``np.median``).
+    """
     rows = d[:: max(d.shape[0] // 64, 1)]
-    diff = (rows[:, 1:] - rows[:, :-1]).ravel()
-    diff = diff[diff != 0]  # the dark, saturated or constant parts say nothing about noise
-    if diff.size < 16:
-        return 0.0
-    return float(np.median(np.abs(diff))) * 1.4826 / np.sqrt(2.0)
+    diff = rows[:, 1:] - rows[:, :-1]
+    if d.dtype.kind == "i":
+        counts = np.bincount(np.abs(diff).ravel())
+        counts[:1] = 0
+        n = int(counts.sum())
+        if n < 16:
+            return 0.0
+        cum = np.cumsum(counts)
+        # np.median: the mean of the sorted values at (n − 1) // 2 and n // 2.
+        mad = 0.5 * float(np.searchsorted(cum, (n - 1) // 2 + 1) + np.searchsorted(cum, n // 2 + 1))
+    else:
+        flat = diff.ravel()
+        flat = flat[flat != 0]
+        if flat.size < 16:
+            return 0.0
+        mad = float(np.median(np.abs(flat)))
+    return float(mad * 1.4826 / np.sqrt(2.0))  # a Python float: keeps float32 math float32
 
 
-def _local_background(sub: NDArray[np.float32], radius_px: int) -> NDArray[np.float32]:
-    """Local background of the subtracted image (flicker leaves a faint scene in it).
+#: Half-size of the box mean that takes back the min filter's bias (31x31), px.
+_BIAS_RADIUS_PX = 15
+#: Images smaller than this (either side, px) are processed whole, without the box.
+_MIN_PYRAMID_PX = 32
+#: A place is active (inside the processed box) if it stands this share of the detection
+#: threshold above the background at half resolution.
+_ACTIVE_SHARE = 0.6
+
+
+def _background_half(
+    small: NDArray[np.float32], radius_px: int, noise: float
+) -> NDArray[np.float32]:
+    """Local background (flicker leaves a faint scene in the subtracted image) at half
+    resolution, from ``small`` = ``cv2.pyrDown`` of the subtracted image, gray levels.
 
     The dots are brighter than their surroundings and at most ~2·radius_px across, so a min
-    filter of that radius (on a 3x3 mean, to tame the noise's downward bias) lands between
-    them; a box mean of the same size smooths the resulting staircase.
+    filter of that radius (on the pyramid's Gaussian-smoothed pixels, which tames the noise's
+    downward bias) lands between them; a box mean of the same size smooths the resulting
+    staircase. The min filter still sits a couple of noise sigmas below the true background,
+    so the local mean (31 px) of what is left over, with dot light (and its lack) clipped out,
+    is added back. The background is smooth, so half resolution loses nothing but time.
     """
-    k = 2 * radius_px + 1
-    low = cv2.erode(cv2.blur(sub, (3, 3)), cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-    return np.asarray(cv2.blur(low, (k, k)), dtype=np.float32)
+    k = radius_px | 1  # ±radius at half resolution is a little wider, with the pyramid blur
+    low = cv2.blur(cv2.erode(small, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))), (k, k))
+    # Noise of pyrDown's output: its 5x5 kernel's squared weights sum to (35/128)².
+    lim = 2.0 * max(noise * 35.0 / 128.0, 0.25)
+    rest = np.clip(small - low, -lim, lim)
+    k_bias = 2 * (_BIAS_RADIUS_PX // 2) + 1
+    return np.asarray(low + cv2.blur(rest, (k_bias, k_bias)), dtype=np.float32)
+
+
+def _box_of(
+    active: NDArray[np.uint8], margin_px: int, shape: tuple[int, int]
+) -> tuple[int, int, int, int] | None:
+    """Even-aligned full-resolution box (r0, r1, c0, c1) — rows r0 … r1 − 1, columns c0 …
+    c1 − 1 — around the nonzero pixels of a half-resolution mask, widened by ``margin_px``;
+    None if there are none."""
+    x, y, bw, bh = cv2.boundingRect(active)
+    if bw == 0 or bh == 0:
+        return None
+    m = margin_px + (margin_px & 1)
+    return (
+        max(2 * y - m, 0),
+        min(2 * (y + bh) + m, shape[0]),
+        max(2 * x - m, 0),
+        min(2 * (x + bw) + m, shape[1]),
+    )
 
 
 def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np.float64]:
     """Sub-pixel dot centres.
 
-    1. gray: the laser's channel combination (``bgr_weights``), signed base − mask;
-    2. local background (flicker) removed, see :func:`_local_background`;
-    3. candidates: local maxima (3x3) of a Gaussian-smoothed copy (σ = 1 px, close to a matched
-       filter for the dots) above ``best_min_peak_gray`` and ``best_snr`` noise sigmas, and at
-       least ``best_relative_peak`` of the brightest peak within ``best_relative_radius_px``
-       (rejects speckle grains in a dot's halo and dim ghost reflections), and compact:
-       ``best_min_contrast`` against the ring 3 px out (rejects edges and grains on slopes);
-    4. centre: a weighted Gaussian fit on the 5x5 background-free pixels, see :func:`_refine`.
+    1. gray: the laser's channel combination (``bgr_weights``), signed base − mask; its noise
+       sigma (:func:`_noise_sigma`) sets the detection threshold;
+    2. local background (flicker) estimated at half resolution, see :func:`_background_half`;
+    3. only the box around the places standing 0.6 · threshold above that background at half
+       resolution is processed further (the laser dots usually cover a part of the mirror disk
+       only: the pattern is thrown to the front). A dot the whole frame would show has its
+       smoothed peak above the threshold, and ≥ ~0.69 of that at half resolution (the pyramid
+       samples every other pixel), so only a lone dot barely above the threshold, outside the
+       box of all the others, can be lost to the box;
+    4. candidates: local maxima (3x3) of a Gaussian-smoothed copy (σ = 1 px, close to a matched
+       filter for the dots) above ``best_min_peak_gray`` and ``best_snr`` noise sigmas, and
+       compact: ``best_min_contrast`` against the ring 3 px out (rejects edges and grains on
+       slopes), and at least ``best_relative_peak`` of the brightest value within
+       ``best_relative_radius_px`` (rejects speckle grains in a dot's halo and dim ghosts);
+    5. centre: a weighted Gaussian fit on the 5x5 background-free pixels, see :func:`_refine`.
+
+    Cost: the full frame is touched only by the subtraction (int16 for 8-bit input), the
+    noise estimate (a few rows) and one pyramid step; every other filter runs at half
+    resolution or inside the box, and the per-dot work is vectorised over the candidates.
     """
-    sub = to_gray(base, p.bgr_weights) - to_gray(mask, p.bgr_weights)
-    noise = _noise_sigma(sub)
-    d = sub - _local_background(sub, p.best_background_radius_px)
-    # The min filter sits below the true background by a couple of noise sigmas: take back
-    # the local mean of what is left, with dot light (and its lack) clipped out of that mean.
-    lim = 2.0 * max(noise, 0.5)
-    d -= cv2.blur(np.clip(d, -lim, lim), (31, 31))
-    sm = cv2.GaussianBlur(d, (7, 7), 1.0)
+    full = _laser_difference(mask, base, p.bgr_weights)
+    h_img, w_img = full.shape
+    noise = _noise_sigma(full)
     # The smoothing divides white noise by about 2·√π·σ = 3.5.
     threshold = max(p.best_min_peak_gray, p.best_snr * noise / 3.5)
-    h, w = d.shape
+    small = np.asarray(cv2.pyrDown(full), dtype=np.float32)
+    bg_half = _background_half(small, p.best_background_radius_px, noise)
+    if min(h_img, w_img) < _MIN_PYRAMID_PX:
+        r0, r1, c0, c1 = 0, h_img, 0, w_img
+    else:
+        active = (small - bg_half > _ACTIVE_SHARE * threshold).view(np.uint8)
+        box = _box_of(active, 8 + p.best_relative_radius_px, (h_img, w_img))
+        if box is None:
+            return _empty()
+        r0, r1, c0, c1 = box
+    sub = full[r0:r1, c0:c1].astype(np.float32)
+    h, w = sub.shape
+    # pyrUp puts half-resolution pixel i at full-resolution pixel 2i, as pyrDown took it.
+    part = bg_half[r0 // 2 : (r1 + 1) // 2 + 1, c0 // 2 : (c1 + 1) // 2 + 1]
+    d = sub - cv2.pyrUp(part)[:h, :w]
+    sm = cv2.GaussianBlur(d, (7, 7), 1.0)
     peaks = sm >= cv2.dilate(sm, np.ones((3, 3), np.uint8))
     peaks &= sm > threshold
-    if p.best_relative_peak > 0:
-        k = 2 * p.best_relative_radius_px + 1
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        peaks &= sm >= p.best_relative_peak * cv2.dilate(sm, disk)
-    peaks[:3, :] = False  # the 5x5 fit and the contrast ring need 3 px around the peak
-    peaks[h - 3 :, :] = False
-    peaks[:, :3] = False
-    peaks[:, w - 3 :] = False
-    rows, cols = np.nonzero(peaks)
+    # The 5x5 fit and the contrast ring need 3 px around the peak inside the image.
+    peaks[: max(3 - r0, 0), :] = False
+    peaks[h - max(3 - (h_img - r1), 0) :, :] = False
+    peaks[:, : max(3 - c0, 0)] = False
+    peaks[:, w - max(3 - (w_img - c1), 0) :] = False
+    flat = np.flatnonzero(peaks)  # (much faster than np.nonzero on a 2-D mask)
+    rows, cols = np.divmod(flat, w)
+    centre = sm[rows, cols]
     if p.best_min_contrast > 0 and len(rows):
         # A dot is compact: its smoothed peak stands well above the ring 3 px around it; edges
         # (the mirror rim in a flickering capture) and grains on a dot's slope do not.
-        ring = np.mean([sm[rows + dr, cols + dc] for dr, dc in _RING3], axis=0)
-        centre = sm[rows, cols]
+        ring = sum(sm[rows + dr, cols + dc] for dr, dc in _RING3) / np.float32(len(_RING3))
         ok = centre - ring >= p.best_min_contrast * centre
-        rows, cols = rows[ok], cols[ok]
+        rows, cols, centre = rows[ok], cols[ok], centre[ok]
+    if p.best_relative_peak > 0 and len(rows):
+        rad = p.best_relative_radius_px
+        disk = _disk(rad)
+        src, off = sm, rad
+        if min(rows.min(), cols.min()) < rad or rows.max() >= h - rad or cols.max() >= w - rad:
+            # Near the image's edge the neighbourhood holds only the pixels in the image.
+            src = cv2.copyMakeBorder(sm, rad, rad, rad, rad, cv2.BORDER_CONSTANT, value=-np.inf)
+            off = 0
+        near = np.lib.stride_tricks.sliding_window_view(src, disk.shape)[rows - off, cols - off]
+        ok = centre >= p.best_relative_peak * near[:, disk].max(axis=1)
+        rows, cols, centre = rows[ok], cols[ok], centre[ok]
     if len(rows) == 0:
         return _empty()
-    return np.column_stack([*_refine(d, rows, cols), sm[rows, cols].astype(np.float64)])
+    r, c = _refine(d, rows, cols)
+    return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
+
+
+def _disk(radius_px: int) -> NDArray[np.bool_]:
+    """The (2r + 1)² boolean disk of cv2.MORPH_ELLIPSE: the neighbourhood of the relative test."""
+    k = 2 * radius_px + 1
+    return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dtype=bool)
 
 
 #: Eight points about 3 px from a peak, for the contrast test of the best method.
@@ -380,6 +486,8 @@ _FIT_R, _FIT_C = (
     a.ravel().astype(np.float64) for a in np.meshgrid(_FIT_OFF, _FIT_OFF, indexing="ij")
 )
 _FIT_X = np.column_stack([np.ones(25), _FIT_R, _FIT_C, _FIT_R**2 + _FIT_C**2])
+#: Outer products of the design matrix's rows (25, 16): weights @ this = the normal matrices.
+_FIT_XX = (_FIT_X[:, :, None] * _FIT_X[:, None, :]).reshape(25, 16)
 
 
 def _refine(
@@ -394,19 +502,31 @@ def _refine(
     centroid is 3× worse (truncation pulls it to the pixel centre), the per-axis 3-point
     Gaussian 1.8× worse (measured while choosing; see docs/benchmarks/detection.md).
     """
-    o = _FIT_OFF
-    win = d[rows[:, None, None] + o[None, :, None], cols[:, None, None] + o[None, None, :]]
-    vals = win.reshape(len(rows), 25).astype(np.float64)
+    windows = np.lib.stride_tricks.sliding_window_view(d, (5, 5))
+    # Weights and logs in float32 (ample for 0.01 px; the sums below are float64).
+    vals = np.asarray(windows[rows - 2, cols - 2].reshape(len(rows), 25), dtype=np.float32)
     top = vals.max(axis=1, keepdims=True)
-    weight = np.where(vals > 0.05 * top, vals * vals, 0.0)
-    logs = np.log(np.maximum(vals, 1e-3 * np.maximum(top, 1e-3)))
-    normal = np.einsum("nk,ki,kj->nij", weight, _FIT_X, _FIT_X)
-    rhs = np.einsum("nk,ki,nk->ni", weight, _FIT_X, logs)
-    normal += 1e-9 * np.eye(4)
-    sol = np.linalg.solve(normal, rhs[..., None])[..., 0]
-    curv = np.where(sol[:, 3] < 0, sol[:, 3], -1e-9)  # a peak must curve down
-    dr = np.clip(-sol[:, 1] / (2.0 * curv), -1.0, 1.0)
-    dc = np.clip(-sol[:, 2] / (2.0 * curv), -1.0, 1.0)
+    weight = np.where(vals > np.float32(0.05) * top, vals * vals, np.float32(0.0))
+    logs = np.log(np.maximum(vals, np.float32(1e-3) * np.maximum(top, np.float32(1e-3))))
+    # Augmented normal equations [XᵀWX + εI | XᵀW ln I], one (4, 5) system per dot (rows of
+    # ``aug``: equation i of every dot at once), solved by elimination without pivoting
+    # (XᵀWX is symmetric positive definite); far cheaper than np.linalg.solve's per-matrix
+    # LAPACK calls for ~1000 tiny systems.
+    aug = np.empty((4, 5, len(rows)))
+    aug[:, :4] = (weight @ _FIT_XX).T.reshape(4, 4, -1)
+    aug[:, 4] = ((weight * logs) @ _FIT_X).T
+    aug[np.arange(4), np.arange(4)] += 1e-9
+    for k in range(3):
+        pivot = np.where(np.abs(aug[k, k]) > 1e-300, aug[k, k], 1e-300)
+        aug[k + 1 :] -= (aug[k + 1 :, k] / pivot)[:, None, :] * aug[k][None]
+    e = aug[3, 4] / np.where(np.abs(aug[3, 3]) > 1e-300, aug[3, 3], 1e-300)
+    c = (aug[2, 4] - aug[2, 3] * e) / np.where(np.abs(aug[2, 2]) > 1e-300, aug[2, 2], 1e-300)
+    b = (aug[1, 4] - aug[1, 3] * e - aug[1, 2] * c) / np.where(
+        np.abs(aug[1, 1]) > 1e-300, aug[1, 1], 1e-300
+    )
+    curv = np.where(e < 0, e, -1e-9)  # a peak must curve down
+    dr = np.clip(-b / (2.0 * curv), -1.0, 1.0)
+    dc = np.clip(-c / (2.0 * curv), -1.0, 1.0)
     return rows + dr, cols + dc
 
 

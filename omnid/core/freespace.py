@@ -5,16 +5,23 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
 — out of the laser's forward field — still blocks it:
 
 - ``update`` rasterises one classified cloud. Free area is not just the cells under floor dots:
-  the dots are joined by a Delaunay triangulation (``cv2.Subdiv2D``), and every triangle whose
-  three corners are floor dots, with no edge longer than ``free_max_edge_mm``, is floor the laser
-  has swept — FREE. A triangle with a drop-off corner (and no obstacle corner) spans the place
-  where the floor goes missing: dots beyond an edge fall lower and land farther, so between the
-  last floor dot and the first lowered one lies floor that was never seen — it is marked DROPOFF,
-  never free. Stronger still, a lowered dot's laser ray crossed floor level somewhere nearer
-  without meeting floor: the cells along the ray from that crossing to the dot are DROPOFF,
-  however deep the drop (7.2.2 extended to missing floor). Obstacle dots, and triangles of
-  neighbouring obstacle dots (a box top), mark OBSTACLE (dots optionally inflated). Cells this
-  cloud does not cover keep what they had.
+  neighbouring dots are joined into triangles, and every triangle whose three corners are floor
+  dots, with no edge longer than ``free_max_edge_mm``, is floor the laser has swept — FREE. A
+  triangle with a drop-off corner (and no obstacle corner) spans the place where the floor goes
+  missing: dots beyond an edge fall lower and land farther, so between the last floor dot and the
+  first lowered one lies floor that was never seen — it is marked DROPOFF, never free (filled
+  twice: with the lowered dots where they landed, and where their rays crossed floor level).
+  Stronger still, a lowered dot's laser ray crossed floor level somewhere nearer without meeting
+  floor: the cells along the ray from that crossing to the dot are DROPOFF, however deep the drop
+  (7.2.2 extended to missing floor). Obstacle dots, and triangles of neighbouring obstacle dots
+  (a box top), mark OBSTACLE (dots optionally inflated). Cells this cloud does not cover keep
+  what they had.
+- Triangles come from the laser lattice (``neighbours="lattice"``): the source sits at the rig
+  origin, so a dot's slopes (X/Z, Y/Z) name its ray whatever it hit, and the dots fall into rows
+  of the projector's lattice; adjacent rows are stitched into triangle strips, and each run of
+  strip triangles of one kind is filled as one polygon. That replaced a Delaunay triangulation
+  (``cv2.Subdiv2D``) and one polygon per triangle, 5–10x the cost; Delaunay remains for clouds
+  without lattice rows and as ``neighbours="delaunay"``.
 - ``move`` applies the robot's motion. The map is stored in an *anchor* frame (the robot frame
   at some earlier pose) together with the current robot pose in it; a move only updates that
   pose, and the grid is resampled (``cv2.warpAffine``, nearest neighbour) only when the chair has
@@ -39,6 +46,13 @@ from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid, rig_to_
 from omnid.core.types import PointClass, PointCloud
 
 _UNSEEN = 255  # observation layer: this update says nothing about the cell
+# Per-dot flags of the lattice fill (combined over a triangle's corners).
+_F_FLOOR, _F_OBSTACLE, _F_DROPOFF, _F_LOW, _F_INSIDE, _F_INSIDE_C = 1, 2, 4, 8, 16, 32
+# Flags of PointClass FLOOR, OBSTACLE, DROPOFF; a code beyond them has none of the three.
+_CLASS_FLAGS = np.array([_F_FLOOR, _F_OBSTACLE, _F_DROPOFF, 0], dtype=np.uint8)
+_CLASS_FLAGS.setflags(write=False)
+_FAR_MM = 1e9  # points farther than this (or not finite) are ignored
+_SHIFT = 4  # fractional bits of the fixed-point polygon corners given to cv2.fillPoly
 
 
 @dataclass(frozen=True)
@@ -57,6 +71,9 @@ class FreeSpaceSettings:
     forget_after_s         remembered cells not seen again for this long become UNKNOWN
                            (0: never forget); needs ``now_s`` in :meth:`FreeSpaceMap.update`
     reanchor_distance_mm   travel from the anchor pose before the stored grid is resampled
+    neighbours             how dots are joined into triangles: "lattice" (strips between the
+                           rows of the laser lattice, found from the dots' ray slopes; clouds
+                           without rows fall back to Delaunay) or "delaunay" (always)
     """
 
     grid: GridSettings = field(default_factory=GridSettings)
@@ -67,6 +84,7 @@ class FreeSpaceSettings:
     forget_after_s: float = 0.0
     clear_after_contradictions: int = 3
     reanchor_distance_mm: float = 1000.0
+    neighbours: str = "lattice"
 
     def __post_init__(self) -> None:
         for key in (
@@ -81,6 +99,11 @@ class FreeSpaceSettings:
             require(math.isfinite(value) and value >= 0, key, "must be a finite number ≥ 0")
         require(self.free_max_edge_mm > 0, "free_max_edge_mm", "must be positive")
         require(self.clear_after_contradictions >= 1, "clear_after_contradictions", "must be ≥ 1")
+        require(
+            self.neighbours in ("lattice", "delaunay"),
+            "neighbours",
+            f"must be 'lattice' or 'delaunay', not {self.neighbours!r}",
+        )
 
 
 def _affine(
@@ -132,6 +155,7 @@ class FreeSpaceMap:
         self._pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  # robot in the anchor frame
         self._now_s = 0.0
         self._grid: OccupancyGrid | None = None
+        self._strips: _Strips | None = None  # the last capture's lattice strips
 
     # -- motion -------------------------------------------------------------------------------
 
@@ -212,37 +236,44 @@ class FreeSpaceMap:
         st = self.settings
         if len(cloud):
             xy = _to_frame(self._pose, rig_to_robot(cloud.xyz, rig_x_offset_mm))
-            ok = np.all(np.isfinite(xy), axis=1)
-            xy, cls = xy[ok], cloud.classes[ok]
+            # Finite and within 1000 km (NaN compares False): no overflow in any distance below.
+            ok = (np.abs(xy[:, 0]) < _FAR_MM) & (np.abs(xy[:, 1]) < _FAR_MM)
+            xyz, cls = cloud.xyz, cloud.classes
+            if not ok.all():
+                xy, cls, xyz = xy[ok], cls[ok], xyz[ok]
             # A ray that ended below the floor passed floor level at P·H/Z without meeting any
             # floor there: the floor is missing all along its path from that crossing to the dot.
-            xyz = cloud.xyz[ok]
             H = cloud.floor_depth_mm
             low = (cls == PointClass.DROPOFF) & (xyz[:, 2] > H)
             crossing = xyz[low] * (H / xyz[low, 2])[:, None]
             xy0 = _to_frame(self._pose, rig_to_robot(crossing, rig_x_offset_mm))
             segments = np.stack([xy0, xy[low]], axis=1)
-            # The crossings also join the triangulation as drop-off corners, so the strip between
-            # the last floor dots and the first crossings reads DROPOFF too.
+            # The crossings also join the fill as drop-off corners (a lowered dot's triangles are
+            # filled once at its dot and once at its crossing), so the strip between the last
+            # floor dots and the first crossings reads DROPOFF too; their cells are drop-off dots.
+            n_dots = len(xy)
             xy = np.vstack([xy, xy0])
             cls = np.concatenate([cls, np.full(len(xy0), PointClass.DROPOFF, np.uint8)])
-            obs, direct_free = self._observation(xy, cls, cv2, segments)
+            obs, direct_free, (r0, c0) = self._observation(xy, cls, cv2, segments, xyz, low, n_dots)
+            # The observation covers only a window of the anchor grid (the cloud's bounding
+            # box); the memory rules below work on that window.
+            win = (slice(r0, r0 + obs.shape[0]), slice(c0, c0 + obs.shape[1]))
+            states = self._anchor.states[win]
             seen = obs != _UNSEEN
             # Free area filled in between floor dots is an interpolation: it must not erase a
             # remembered obstacle or drop-off (a thin post can fall between the dots of one
             # capture). Only a floor dot landing in the cell itself clears it.
-            held = (self._anchor.states == CellState.OBSTACLE) | (
-                self._anchor.states == CellState.DROPOFF
-            )
+            held = (states == CellState.OBSTACLE) | (states == CellState.DROPOFF)
             # It does clear it once ``clear_after_contradictions`` captures in a row have filled
             # it as free, so a phantom or removed obstacle between dot columns cannot stay forever.
             contradicted = held & (obs == CellState.FREE) & ~direct_free
-            self._contradictions[contradicted] += 1
-            self._contradictions[~contradicted] = 0
-            keep = contradicted & (self._contradictions < st.clear_after_contradictions)
+            counts = np.where(contradicted, self._contradictions[win] + 1, 0).astype(np.uint8)
+            self._contradictions.fill(0)  # outside the window nothing is contradicted
+            self._contradictions[win] = counts
+            keep = contradicted & (counts < st.clear_after_contradictions)
             seen &= ~keep
-            self._anchor.states[seen] = obs[seen].astype(np.int8)
-            self._seen_s[seen] = self._now_s
+            states[seen] = obs[seen].astype(np.int8)
+            self._seen_s[win][seen] = self._now_s
         if st.forget_after_s > 0 and now_s is not None:
             stale = (self._now_s - self._seen_s) > st.forget_after_s
             self._anchor.states[stale] = CellState.UNKNOWN
@@ -263,67 +294,69 @@ class FreeSpaceMap:
         cls: NDArray[np.uint8],
         cv2,
         missing_floor: NDArray[np.float64],
-    ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
-        """The cells one cloud speaks about: uint8 CellState values, _UNSEEN elsewhere; and the
-        mask of cells FREE because a floor dot lies in them (not by filling between dots).
+        xyz: NDArray[np.float64],
+        low: NDArray[np.bool_],
+        n_dots: int,
+    ) -> tuple[NDArray[np.uint8], NDArray[np.bool_], tuple[int, int]]:
+        """The cells one cloud speaks about, in a window of the anchor grid around the cloud:
+        uint8 CellState values, _UNSEEN elsewhere; the mask of cells FREE because a floor dot
+        lies in them (not by filling between dots); and the window's first (row, column).
 
-        ``missing_floor`` (M, 2, 2): anchor-frame segments along which the floor is known to be
-        missing (a lowered dot's ray from its floor-level crossing to the dot).
+        ``xy`` (N, 2): anchor-frame positions of the ``n_dots`` dots (rig positions ``xyz``,
+        ``low``: lowered drop-off dots), followed by the floor-level crossings of the lowered
+        dots' rays, in order; ``missing_floor`` (M, 2, 2): anchor-frame segments along which the
+        floor is known to be missing (a lowered dot's ray from its crossing to the dot).
         """
         st = self.settings
-        shape = self._anchor.states.shape
-        obs = np.full(shape, _UNSEEN, dtype=np.uint8)
-        shift = 4
-        scale = float(1 << shift)
+        radius = math.ceil(st.obstacle_inflation_mm / self._anchor_settings.resolution_mm)
         pix = self._pixels(xy)
+        # The window: the points' bounding box (it holds every triangle and ray segment between
+        # them), grown by the inflation radius, clipped to the grid.
+        rows, cols = self._anchor.states.shape
+        pad = radius + 2
+        if len(pix):
+            lo = np.floor([pix[:, 0].min(), pix[:, 1].min()]) - pad
+            hi = np.ceil([pix[:, 0].max(), pix[:, 1].max()]) + pad + 1
+        else:
+            lo = hi = np.zeros(2)
+        c0, c1 = (int(np.clip(v, 0, cols)) for v in (lo[0], hi[0]))
+        r0, r1 = (int(np.clip(v, 0, rows)) for v in (lo[1], hi[1]))
+        shape = (max(r1 - r0, 0), max(c1 - c0, 0))
+        obs = np.full(shape, _UNSEEN, dtype=np.uint8)
+        if obs.size == 0:
+            return obs, np.zeros(shape, dtype=bool), (r0, c0)
+        offset = np.array([c0, r0], dtype=np.float64)
+        pix = pix - offset
         inside = (
             (pix[:, 0] > -1) & (pix[:, 0] < shape[1]) & (pix[:, 1] > -1) & (pix[:, 1] < shape[0])
         )
         floor = cls == PointClass.FLOOR
         obstacle = cls == PointClass.OBSTACLE
         dropoff = cls == PointClass.DROPOFF
-
-        tri = _delaunay(xy[inside]) if inside.sum() >= 3 else np.zeros((0, 3), dtype=np.intp)
-        if len(tri):
-            idx = np.flatnonzero(inside)[tri]  # (T, 3) indices into xy
-            corners = xy[idx]  # (T, 3, 2)
-            edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-            tcls = cls[idx]
-            all_floor = np.all(tcls == PointClass.FLOOR, axis=1)
-            any_drop = np.any(tcls == PointClass.DROPOFF, axis=1)
-            any_obst = np.any(tcls == PointClass.OBSTACLE, axis=1)
-            polys = np.rint(pix[idx] * scale).astype(np.int32)  # (T, 3, 2)
-            free_t = all_floor & (edges <= st.free_max_edge_mm)
-            drop_t = any_drop & ~any_obst & (edges <= st.dropoff_max_edge_mm)
-            obst_t = np.all(tcls == PointClass.OBSTACLE, axis=1) & (
-                edges <= st.obstacle_max_edge_mm
-            )
-            if np.any(free_t):
-                cv2.fillPoly(obs, list(polys[free_t]), int(CellState.FREE), cv2.LINE_8, shift)
-            if np.any(drop_t):
-                cv2.fillPoly(obs, list(polys[drop_t]), int(CellState.DROPOFF), cv2.LINE_8, shift)
-            if np.any(obst_t):
-                cv2.fillPoly(obs, list(polys[obst_t]), int(CellState.OBSTACLE), cv2.LINE_8, shift)
+        lattice = st.neighbours == "lattice"
+        if not (lattice and self._fill_lattice(obs, xy, cls, pix, inside, xyz, low, n_dots, cv2)):
+            self._fill_delaunay(obs, xy, cls, pix, inside, cv2)
 
         cells = np.floor(pix + 0.5).astype(np.intp)  # the cell containing the point
         valid = (cells[:, 0] >= 0) & (cells[:, 0] < shape[1])
         valid &= (cells[:, 1] >= 0) & (cells[:, 1] < shape[0])
         fl = valid & floor
         # A floor dot's own cell is free unless this cloud already called it a drop-off.
-        here = obs[cells[fl, 1], cells[fl, 0]]
-        obs[cells[fl, 1], cells[fl, 0]] = np.where(here == CellState.DROPOFF, here, CellState.FREE)
+        lin = cells[fl, 1] * shape[1] + cells[fl, 0]  # flat indices: cheaper than (row, col)
+        flat = obs.reshape(-1)  # a view
+        here = flat[lin]
+        flat[lin] = np.where(here == CellState.DROPOFF, here, np.uint8(CellState.FREE))
         direct_free = np.zeros(shape, dtype=bool)
-        direct_free[cells[fl, 1], cells[fl, 0]] = True
+        direct_free.reshape(-1)[lin] = True
         if len(missing_floor):
             res = self._anchor_settings.resolution_mm
             seg = missing_floor[:, 1] - missing_floor[:, 0]
             k = max(2, math.ceil(float(np.linalg.norm(seg, axis=1).max()) / (0.5 * res)) + 1)
             t = np.linspace(0.0, 1.0, k)
             along = missing_floor[:, None, 0, :] + t[None, :, None] * seg[:, None, :]
-            c = np.floor(self._pixels(along.reshape(-1, 2)) + 0.5).astype(np.intp)
+            c = np.floor(self._pixels(along.reshape(-1, 2)) - offset + 0.5).astype(np.intp)
             ok = (c[:, 0] >= 0) & (c[:, 0] < shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < shape[0])
             obs[c[ok, 1], c[ok, 0]] = int(CellState.DROPOFF)
-        radius = math.ceil(st.obstacle_inflation_mm / self._anchor_settings.resolution_mm)
         for mask_pts, state in (
             (valid & dropoff, CellState.DROPOFF),
             (valid & obstacle, CellState.OBSTACLE),
@@ -338,7 +371,114 @@ class FreeSpaceMap:
                 )
                 layer = cv2.dilate(layer, kernel)
             obs[layer > 0] = int(state)
-        return obs, direct_free & (obs == CellState.FREE)
+        return obs, direct_free & (obs == CellState.FREE), (r0, c0)
+
+    def _fill_lattice(
+        self,
+        obs: NDArray[np.uint8],
+        xy: NDArray[np.float64],
+        cls: NDArray[np.uint8],
+        pix: NDArray[np.float64],
+        inside: NDArray[np.bool_],
+        xyz: NDArray[np.float64],
+        low: NDArray[np.bool_],
+        n_dots: int,
+        cv2,
+    ) -> bool:
+        """Fill the triangles between the dots from the laser lattice's strips (see
+        :func:`_lattice_strips`); False, touching nothing, when the dots show no lattice rows."""
+        st = self.settings
+        ray = (xyz[:, 2] > 1e-9) & (xyz[:, 2] < _FAR_MM)  # NaN compares False
+        sel = np.flatnonzero(ray)
+        if len(sel) < 4:
+            return False
+        z = xyz[sel, 2]
+        u, v = xyz[sel, 0] / z, xyz[sel, 1] / z
+        # The lattice changes little from capture to capture: the last strips usually still fit.
+        strips = self._strips
+        if strips is None or not strips.fits(u, v):
+            strips = self._strips = _lattice_strips(u, v)
+        if strips is None:
+            return False
+        if len(sel) < len(xyz):
+            strips = replace(
+                strips,
+                tri=sel[strips.tri],
+                a_chain=sel[strips.a_chain],
+                b_chain=sel[strips.b_chain],
+            )
+        # Per-dot flags, combined over each triangle's corners with one AND and one OR.
+        where_low = np.flatnonzero(low)
+        inside_c = inside[:n_dots].copy()
+        inside_c[where_low] = inside[n_dots : n_dots + len(where_low)]
+        c = cls[:n_dots]
+        flags = _CLASS_FLAGS[np.minimum(c, len(_CLASS_FLAGS) - 1)]
+        flags |= low * np.uint8(_F_LOW)
+        flags |= inside[:n_dots] * np.uint8(_F_INSIDE)
+        flags |= inside_c * np.uint8(_F_INSIDE_C)
+        t0, t1, t2 = strips.tri[:, 0], strips.tri[:, 1], strips.tri[:, 2]
+        f0, f1, f2 = flags[t0], flags[t1], flags[t2]
+        every, some = f0 & f1 & f2, f0 | f1 | f2
+        near = (every & _F_INSIDE) > 0
+        edges = _longest_edge(xy, t0, t1, t2)
+        free_t = near & ((every & _F_FLOOR) > 0) & (edges <= st.free_max_edge_mm)
+        no_obst = (some & _F_OBSTACLE) == 0
+        drop_t = near & ((some & _F_DROPOFF) > 0) & no_obst & (edges <= st.dropoff_max_edge_mm)
+        obst_t = near & ((every & _F_OBSTACLE) > 0) & (edges <= st.obstacle_max_edge_mm)
+        value = np.zeros(len(t0), dtype=np.uint8)  # the three kinds exclude each other
+        value[free_t] = CellState.FREE
+        value[drop_t] = CellState.DROPOFF
+        value[obst_t] = CellState.OBSTACLE
+        free, drop, obst = int(CellState.FREE), int(CellState.DROPOFF), int(CellState.OBSTACLE)
+        fixed = _fixed_point(pix)
+        if len(where_low) == 0:
+            _fill_strips(obs, strips, value, pix, fixed, (free, drop, obst), cv2)
+            return True
+        _fill_strips(obs, strips, value, pix, fixed, (free, drop), cv2)
+        # Lowered dots stand in at their floor-level crossings in a second drop-off fill.
+        xy_c = xy[:n_dots].copy()
+        xy_c[where_low] = xy[n_dots : n_dots + len(where_low)]
+        pix_c = pix[:n_dots].copy()
+        pix_c[where_low] = pix[n_dots : n_dots + len(where_low)]
+        drop_c = ((every & _F_INSIDE_C) > 0) & ((some & _F_LOW) > 0) & no_obst
+        drop_c &= _longest_edge(xy_c, t0, t1, t2) <= st.dropoff_max_edge_mm
+        fixed_c = _fixed_point(pix_c)
+        _fill_strips(obs, strips, drop_c * np.uint8(drop), pix_c, fixed_c, (drop,), cv2)
+        _fill_strips(obs, strips, (value == obst) * np.uint8(obst), pix, fixed, (obst,), cv2)
+        return True
+
+    def _fill_delaunay(
+        self,
+        obs: NDArray[np.uint8],
+        xy: NDArray[np.float64],
+        cls: NDArray[np.uint8],
+        pix: NDArray[np.float64],
+        inside: NDArray[np.bool_],
+        cv2,
+    ) -> None:
+        """Fill the triangles between the dots from a Delaunay triangulation of all of them
+        (crossings included as drop-off corners): for clouds without lattice rows."""
+        st = self.settings
+        tri = _delaunay(xy[inside]) if inside.sum() >= 3 else np.zeros((0, 3), dtype=np.intp)
+        if len(tri) == 0:
+            return
+        idx = np.flatnonzero(inside)[tri]  # (T, 3) indices into xy
+        edges = _longest_edge(xy, idx[:, 0], idx[:, 1], idx[:, 2])
+        tcls = cls[idx]
+        all_floor = np.all(tcls == PointClass.FLOOR, axis=1)
+        any_drop = np.any(tcls == PointClass.DROPOFF, axis=1)
+        any_obst = np.any(tcls == PointClass.OBSTACLE, axis=1)
+        polys = _fixed_point(pix)[idx]  # (T, 3, 2)
+        free_t = all_floor & (edges <= st.free_max_edge_mm)
+        drop_t = any_drop & ~any_obst & (edges <= st.dropoff_max_edge_mm)
+        obst_t = np.all(tcls == PointClass.OBSTACLE, axis=1) & (edges <= st.obstacle_max_edge_mm)
+        for use, state in (
+            (free_t, CellState.FREE),
+            (drop_t, CellState.DROPOFF),
+            (obst_t, CellState.OBSTACLE),
+        ):
+            if np.any(use):
+                cv2.fillPoly(obs, list(polys[use]), int(state), cv2.LINE_8, _SHIFT)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -439,6 +579,26 @@ class FreeSpaceMap:
         Path(path).write_bytes(buf.tobytes())
 
 
+def _fixed_point(pix: NDArray[np.float64]) -> NDArray[np.int32]:
+    """Pixel coordinates (N, 2) → cv2 fixed point with :data:`_SHIFT` fractional bits (clipped
+    far outside any grid, so that nothing overflows)."""
+    limit = float(1 << (30 - _SHIFT))
+    return np.rint(np.clip(pix, -limit, limit) * (1 << _SHIFT)).astype(np.int32)
+
+
+def _longest_edge(
+    xy: NDArray[np.float64], t0: NDArray[np.intp], t1: NDArray[np.intp], t2: NDArray[np.intp]
+) -> NDArray[np.float64]:
+    """(T,) longest side, mm, of the triangles with corners ``t0``, ``t1``, ``t2`` (T,) (indices
+    into points ``xy`` (N, 2))."""
+    x, y = xy[:, 0], xy[:, 1]
+    x0, x1, x2, y0, y1, y2 = x[t0], x[t1], x[t2], y[t0], y[t1], y[t2]
+    d01 = (x1 - x0) ** 2 + (y1 - y0) ** 2
+    d12 = (x2 - x1) ** 2 + (y2 - y1) ** 2
+    d20 = (x0 - x2) ** 2 + (y0 - y2) ** 2
+    return np.sqrt(np.maximum(np.maximum(d01, d12), d20))
+
+
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
     """Delaunay triangles (T, 3) of indices into 2-D points ``xy`` (N, 2) (cv2.Subdiv2D)."""
     import cv2
@@ -462,6 +622,237 @@ def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
     idx = order[pos].reshape(-1, 3)
     keep = found.reshape(-1, 3).all(axis=1)
     return idx[keep].astype(np.intp)
+
+
+# -- the laser lattice ------------------------------------------------------------------------
+#
+# The laser source sits at the rig origin (SPEC §2), so a dot's slopes (X/Z, Y/Z) name its ray
+# whatever it hit: in slope space the dots of one capture form the projector's lattice, rows of
+# nearly equal X/Z. Neighbours come from that structure — adjacent rows stitched into triangle
+# strips — instead of a Delaunay triangulation of every capture, and a run of strip triangles of
+# one state is one polygon for cv2.fillPoly (a few dozen polygons instead of thousands).
+
+
+def _row_breaks(u_sorted: NDArray[np.float64]) -> NDArray[np.bool_] | None:
+    """Where sorted row slopes X/Z jump to the next lattice row: (N−1,) bool, or None when the
+    slopes show no clear row structure (then the caller triangulates generally).
+
+    Gaps between rows are a lattice step; gaps within a row are measurement noise, far smaller.
+    The split is the cliff in the gaps sorted from large to small — the last ratio of ≥ 4
+    between consecutive ones (among the larger half, so a row holds two dots on average) — which
+    tolerates missing rows and outliers (several steps) above it.
+    """
+    gaps = np.diff(u_sorted)
+    m = len(gaps)
+    if m < 3:
+        return None
+    desc = np.sort(gaps)[::-1]
+    floor = max(1e-3 * float(desc[0]), 1e-12)
+    top = np.maximum(desc[: m // 2 + 1], floor)
+    nxt = np.maximum(desc[1 : m // 2 + 2], floor)
+    cliff = np.flatnonzero(top >= 4.0 * nxt)
+    if len(cliff) == 0:
+        return None
+    k = int(cliff[-1])
+    return gaps > math.sqrt(float(top[k]) * float(nxt[k]))
+
+
+@dataclass(frozen=True)
+class _Strips:
+    """Triangle strips between adjacent lattice rows, in strip order.
+
+    tri        (T, 3) point indices of each triangle
+    strip      (T,) strip (row pair) of each triangle; consecutive triangles of one strip share
+               an edge
+    a_lo, a_hi (T,) ranks in ``a_chain`` of the near-row end points of the triangle's left and
+               right rungs (the edges it shares with its strip neighbours)
+    b_lo, b_hi (T,) likewise in ``b_chain`` for the far row
+    a_chain    point indices of every strip's near row in order along the row, strip after strip
+    b_chain    likewise for the far rows
+    flip       (T,) −1.0 where the triangle's second edge runs along the far row, which turns
+               its corner order the other way round than the near-row ones, else 1.0
+    """
+
+    tri: NDArray[np.intp]
+    strip: NDArray[np.intp]
+    a_lo: NDArray[np.intp]
+    a_hi: NDArray[np.intp]
+    b_lo: NDArray[np.intp]
+    b_hi: NDArray[np.intp]
+    a_chain: NDArray[np.intp]
+    b_chain: NDArray[np.intp]
+    flip: NDArray[np.float64]
+    row_order: NDArray[np.intp]
+    row_starts: NDArray[np.intp]
+    a_same: NDArray[np.bool_]
+    b_same: NDArray[np.bool_]
+
+    def fits(self, u: NDArray[np.float64], v: NDArray[np.float64]) -> bool:
+        """Whether these strips still triangulate dots at slopes ``u``, ``v`` (as many as they
+        were built for): every row still lies apart from the next one by more than a row's own
+        spread, and every row is still in order along v. Then the strips are a valid
+        triangulation of the new dots whichever rays they are — no need to build them again.
+        """
+        if len(u) != len(self.row_order):
+            return False
+        if np.any(np.diff(v[self.a_chain])[self.a_same] <= 0):
+            return False
+        if np.any(np.diff(v[self.b_chain])[self.b_same] <= 0):
+            return False
+        us = u[self.row_order]
+        lo = np.minimum.reduceat(us, self.row_starts)
+        hi = np.maximum.reduceat(us, self.row_starts)
+        return bool(np.all(lo[1:] - hi[:-1] > np.max(hi - lo)))
+
+
+def _lattice_strips(u: NDArray[np.float64], v: NDArray[np.float64]) -> _Strips | None:
+    """Triangle strips of dots at ray slopes u = X/Z (along rows), v = Y/Z; None without rows.
+
+    Rows come from :func:`_row_breaks`; each pair of adjacent rows, both ordered by v, is
+    stitched like a zipper: walking both rows in merged v order, every dot after the first of
+    its row closes a triangle with its predecessor and the other row's latest dot. A pair of
+    rows of a and b dots gives a + b − 2 triangles, O(N log N) in all.
+    """
+    n = len(u)
+    order = np.argsort(u, kind="stable")
+    breaks = _row_breaks(u[order])
+    if breaks is None:
+        return None
+    row = np.empty(n, dtype=np.intp)
+    row[order] = np.concatenate([[0], np.cumsum(breaks)])
+    rows = int(row.max()) + 1
+    if rows < 2:
+        return None
+    # Every dot joins the strip above its row (as a near-row dot, tag 0) and the strip below it
+    # (as a far-row dot, tag 1); sorted by strip, then v.
+    near = np.flatnonzero(row < rows - 1)
+    far = np.flatnonzero(row > 0)
+    strip = np.concatenate([row[near], row[far] - 1])
+    tag = np.concatenate([np.zeros(len(near), np.int8), np.ones(len(far), np.int8)])
+    pt = np.concatenate([near, far])
+    vv = v[pt]
+    lo, span = float(vv.min()), float(vv.max() - vv.min()) + 1.0
+    o = np.argsort(strip * span + (vv - lo), kind="stable")  # near-row dot first on a tie
+    strip, tag, pt = strip[o], tag[o], pt[o]
+    m = len(pt)
+    pos = np.arange(m)
+    is_a = tag == 0
+    start = np.searchsorted(strip, np.arange(rows - 1))[strip]  # first element of the strip
+    last_a = np.maximum.accumulate(np.where(is_a, pos, -1))
+    last_b = np.maximum.accumulate(np.where(is_a, -1, pos))
+    a_pos, b_pos = np.flatnonzero(is_a), np.flatnonzero(~is_a)
+    # First near-row and far-row element of each strip (every strip has dots of both rows).
+    a_strip, b_strip = strip[a_pos], strip[b_pos]
+    first_a = a_pos[np.concatenate([[True], a_strip[1:] != a_strip[:-1]])][strip]
+    first_b = b_pos[np.concatenate([[True], b_strip[1:] != b_strip[:-1]])][strip]
+    cur_a = np.where(last_a >= start, last_a, first_a)
+    cur_b = np.where(last_b >= start, last_b, first_b)
+    prev_a = np.concatenate([[-1], last_a[:-1]])
+    prev_b = np.concatenate([[-1], last_b[:-1]])
+    make_a = is_a & (prev_a >= start)  # a near-row dot after the first of its strip
+    make_b = ~is_a & (prev_b >= start)
+    k = np.flatnonzero(make_a | make_b)
+    ka = make_a[k]
+    # Rungs (near dot, far dot) on the left and right of each triangle, as merged positions.
+    left_a = np.where(ka, prev_a[k], cur_a[k])
+    left_b = np.where(ka, cur_b[k], prev_b[k])
+    right_a = np.where(ka, k, cur_a[k])
+    right_b = np.where(ka, cur_b[k], k)
+    third = np.where(ka, cur_b[k], cur_a[k])
+    tri = np.column_stack([pt[np.where(ka, prev_a[k], prev_b[k])], pt[k], pt[third]])
+    rank_a = np.cumsum(is_a) - 1
+    rank_b = np.cumsum(~is_a) - 1
+    return _Strips(
+        tri=tri.astype(np.intp),
+        strip=strip[k],
+        a_lo=rank_a[left_a],
+        a_hi=rank_a[right_a],
+        b_lo=rank_b[left_b],
+        b_hi=rank_b[right_b],
+        a_chain=pt[a_pos],
+        b_chain=pt[b_pos],
+        flip=np.where(ka, 1.0, -1.0),
+        row_order=order,
+        row_starts=np.flatnonzero(np.concatenate([[True], breaks])),
+        a_same=a_strip[1:] == a_strip[:-1],
+        b_same=b_strip[1:] == b_strip[:-1],
+    )
+
+
+def _fill_strips(
+    obs: NDArray[np.uint8],
+    s: _Strips,
+    value: NDArray[np.uint8],
+    pix: NDArray[np.float64],
+    fixed: NDArray[np.int32],
+    paint: tuple[int, ...],
+    cv2,
+) -> None:
+    """Paint the triangles of ``s`` (corner pixels ``pix``, and the same in fixed point with
+    :data:`_SHIFT` fractional bits, ``fixed``) into ``obs``: each with its ``value`` (T,)
+    (0: not painted), the values in the order ``paint`` (a later one wins).
+
+    Each run of consecutive triangles of one value in a strip, turned the strip's way, is one
+    polygon (near row out, far row back). cv2.fillPoly fills several polygons even-odd, so
+    polygons that overlap must not share a call: runs of odd and even strips (neighbours overlap
+    where noise folds two rows) go in separate calls, and a triangle turned over or flat goes on
+    its own.
+    """
+    used = np.flatnonzero(value)
+    if len(used) == 0:
+        return
+    t0, t1, t2 = s.tri[:, 0][used], s.tri[:, 1][used], s.tri[:, 2][used]
+    px, py = pix[:, 0], pix[:, 1]
+    x0, x1, x2 = px[t0], px[t1], px[t2]
+    y0, y1, y2 = py[t0], py[t1], py[t2]
+    area2 = ((x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)) * s.flip[used]
+    sign = 1.0 if float(np.sum(area2)) >= 0 else -1.0
+    ok = sign * area2 > 1e-9
+    # Turned-over triangles: by value, and in four calls so that no two neighbours share one.
+    single = np.flatnonzero(~ok)
+    single_polys = np.stack([fixed[t0[single]], fixed[t1[single]], fixed[t2[single]]], axis=1)
+    single_group = (
+        value[used[single]].astype(np.intp) * 4 + (s.strip[used[single]] % 2) * 2 + single % 2
+    )
+    by_group = np.argsort(single_group, kind="stable")
+    single_polys, single_group = single_polys[by_group], single_group[by_group]
+    t = used[ok]
+    runs: list[NDArray[np.int32]] = []
+    group = np.zeros(0, dtype=np.intp)
+    if len(t):
+        # A run breaks where the next good triangle is not the next one of the strip, or differs.
+        tv = value[t]
+        cont = (np.diff(t) == 1) & (s.strip[t[1:]] == s.strip[t[:-1]]) & (tv[1:] == tv[:-1])
+        first = t[np.concatenate([[True], ~cont])]
+        last = t[np.concatenate([~cont, [True]])]
+        # Group the runs by value and strip parity: one fillPoly call per group.
+        group = value[first].astype(np.intp) * 2 + s.strip[first] % 2
+        by_group = np.argsort(group, kind="stable")
+        first, last, group = first[by_group], last[by_group], group[by_group]
+        a0, a1 = s.a_lo[first], s.a_hi[last]
+        b0, b1 = s.b_lo[first], s.b_hi[last]
+        len_a = a1 - a0 + 1
+        length = len_a + (b1 - b0 + 1)
+        ends = np.cumsum(length)
+        starts = ends - length
+        offset = np.arange(int(ends[-1]) if len(ends) else 0) - np.repeat(starts, length)
+        in_a = offset < np.repeat(len_a, length)
+        from_a = np.minimum(np.repeat(a0, length) + offset, len(s.a_chain) - 1)
+        from_b = np.clip(np.repeat(b1 + len_a, length) - offset, 0, len(s.b_chain) - 1)
+        idx = np.where(in_a, s.a_chain[from_a], s.b_chain[from_b])
+        flat = fixed[idx]
+        runs = [flat[i:j] for i, j in zip(starts.tolist(), ends.tolist(), strict=True)]
+    top = 4 * max(paint) + 5
+    bounds = np.searchsorted(group, np.arange(top)).tolist()
+    single_bounds = np.searchsorted(single_group, np.arange(top)).tolist()
+    for v in paint:
+        for g in (2 * v, 2 * v + 1):
+            if bounds[g + 1] > bounds[g]:
+                cv2.fillPoly(obs, runs[bounds[g] : bounds[g + 1]], v, cv2.LINE_8, _SHIFT)
+        for g in range(4 * v, 4 * v + 4):
+            if single_bounds[g + 1] > single_bounds[g]:
+                polys = list(single_polys[single_bounds[g] : single_bounds[g + 1]])
+                cv2.fillPoly(obs, polys, v, cv2.LINE_8, _SHIFT)
 
 
 def classified(cloud: PointCloud, classes: ArrayLike) -> PointCloud:

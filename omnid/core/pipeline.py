@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from omnid.config import require
 from omnid.core.calibration import Calibration
@@ -23,9 +24,11 @@ from omnid.errors import InputError
 
 @dataclass(frozen=True)
 class PerceptionSettings:
-    """Settings of each stage. ``detection_method`` None means: the same as the method."""
+    """Settings of each stage. ``detection_method`` None (the default) means: the same as the
+    matching method, so ``thesis`` runs the thesis end to end (detector of 5.2–5.4, matching
+    of 6.12–6.16, triangulation of 6.1–6.9) and ``best`` ours."""
 
-    detection_method: Literal["thesis", "best"] | None = "best"
+    detection_method: Literal["thesis", "best"] | None = None
     detection: DetectionParams = field(default_factory=DetectionParams)
     matching: MatchSettings = field(default_factory=MatchSettings)
     # Image noise of a dot centre for the covariance, px. None: for ``best`` the calibration's
@@ -42,6 +45,23 @@ class PerceptionSettings:
         )
 
 
+@dataclass(frozen=True)
+class Perception:
+    """What one run of the pipeline found: the classified cloud, and the dots each camera's
+    detector found, (N, 3) rows (row_px, col_px, strength) — for the matched fraction."""
+
+    cloud: PointCloud
+    dots1: NDArray[np.float64]
+    dots2: NDArray[np.float64]
+    detection_method: str
+
+    @property
+    def matched_fraction(self) -> float:
+        """Points of the cloud / dots found by the camera that found fewer (0 when none)."""
+        n = min(len(self.dots1), len(self.dots2))
+        return len(self.cloud) / n if n else 0.0
+
+
 def perceive(
     capture: StereoCapture,
     calib: Calibration,
@@ -50,6 +70,16 @@ def perceive(
 ) -> PointCloud:
     """Classified laser dots (rig frame, mm) seen in ``capture`` with ``method`` matching and
     triangulation. An image without dots gives an empty cloud."""
+    return perceive_detailed(capture, calib, method, settings).cloud
+
+
+def perceive_detailed(
+    capture: StereoCapture,
+    calib: Calibration,
+    method: MatchMethod = "best",
+    settings: PerceptionSettings | None = None,
+) -> Perception:
+    """:func:`perceive`, also returning the dots each camera's detector found."""
     from omnid.core.classify import classify
     from omnid.core.triangulate import triangulate
 
@@ -68,7 +98,7 @@ def perceive(
     pixels = match_dots(calib, d1, d2, method, s.matching)
     H = calib.floor_depth_mm
     if len(pixels) == 0:
-        return PointCloud(floor_depth_mm=H)
+        return Perception(PointCloud(floor_depth_mm=H), d1, d2, det)
     sigma = s.pixel_sigma_px
     if sigma is None:
         row_rms = float(calib.residuals.get("row_rms_px", 0.0))
@@ -82,4 +112,5 @@ def perceive(
         classes=np.zeros(int(ok.sum()), dtype=np.uint8),
         floor_depth_mm=H,
     )
-    return replace(cloud, classes=np.asarray(classify(cloud, s.classify), dtype=np.uint8))
+    cloud = replace(cloud, classes=np.asarray(classify(cloud, s.classify), dtype=np.uint8))
+    return Perception(cloud, d1, d2, det)

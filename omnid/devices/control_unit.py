@@ -241,11 +241,14 @@ class ControlUnitLink:
         self._set_unhealthy("link stopped", warn=False)
         self._health.connected = False
 
-    def set_command(self, cmd: WheelCommand) -> None:
-        """Make ``cmd`` the command sent from the next period on."""
+    def set_command(self, cmd: WheelCommand, urgent: bool = False) -> None:
+        """Make ``cmd`` the command sent from the next period on; ``urgent``: send it now
+        (the period grid stays; a rider's new command need not wait up to a period)."""
         if not isinstance(cmd, WheelCommand):
             raise TypeError(f"set_command expects a WheelCommand, got {type(cmd).__name__}")
         self._command = cmd
+        if urgent:
+            self._wake.set()
 
     @property
     def command(self) -> WheelCommand:
@@ -389,10 +392,11 @@ class ControlUnitLink:
             await self._sleep(max(delay, 0.0))
 
     async def _sleep(self, delay_s: float) -> None:
-        self._wake.clear()
+        # cleared after waking, so a wake-up set during an exchange is not lost
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(delay_s):
                 await self._wake.wait()
+        self._wake.clear()
 
     async def _exchange(self, loop: asyncio.AbstractEventLoop) -> None:
         """One command → reply exchange; bookkeeping of every outcome."""

@@ -320,6 +320,19 @@ class Chair:
         pts = self.to_world(np.array(list(local.values()), dtype=np.float64))
         return {name: pts[i] for i, name in enumerate(local)}
 
+    def _rects_of(self, world: _WorldLike) -> NDArray[np.float64]:
+        """The boxes' rectangles (B, 4: x0, x1, y0, y1), remembered per world."""
+        cached = getattr(self, "_rects_cache", None)
+        if cached is not None and cached[0] is world:
+            rects: NDArray[np.float64] = cached[1]
+            return rects
+        rects = np.array(
+            [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in world.boxes],
+            dtype=np.float64,
+        ).reshape(-1, 4)
+        self._rects_cache = (world, rects)
+        return rects
+
     def contacts(self, world: _WorldLike) -> list[Contact]:
         """Everything the chair touches at its current pose that it must not.
 
@@ -331,7 +344,17 @@ class Chair:
         out: list[Contact] = []
         corners = self.footprint()
         axis = np.array([math.cos(self.theta_rad), math.sin(self.theta_rad)])
-        for i, box in enumerate(world.boxes):
+        rects = self._rects_of(world)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        # Only boxes whose rectangle meets the footprint's bounding box can overlap it.
+        near = np.flatnonzero(
+            (rects[:, 0] < hi[0])
+            & (rects[:, 1] > lo[0])
+            & (rects[:, 2] < hi[1])
+            & (rects[:, 3] > lo[1])
+        )
+        for i in near.tolist():
+            box = world.boxes[i]
             if float(box.height_mm) >= s.collision_height_mm and _overlaps_aabb(corners, axis, box):
                 out.append(Contact("collision", i, "footprint"))
         support = self.support_points()

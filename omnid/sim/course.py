@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from omnid.sim.rider import HeadScript, KeyScript, head_script
+from omnid.sim.rider import HeadScript, JoystickScript, KeyScript, head_script
 from omnid.sim.world import Box, DropOff, World
 
 WALL_MM = 100.0
@@ -56,21 +56,23 @@ def walls(x_min: float, x_max: float, y_min: float, y_max: float) -> tuple[Box, 
 
 def builtin_course() -> Course:
     """The demo course described in the module docstring."""
-    x0, x1, y0, y1 = -1300.0, 5500.0, -2200.0, 2200.0
-    px0, px1 = 1900.0, 2000.0  # partition
-    wide, narrow = (-550.0, 550.0), (1250.0, 1700.0)
-    partition = (
-        Box(px0, px1, y0, wide[0], WALL_HEIGHT_MM),
-        Box(px0, px1, wide[1], narrow[0], WALL_HEIGHT_MM),
-        Box(px0, px1, narrow[1], y1, WALL_HEIGHT_MM),
+    x0, x1, y0, y1 = -1300.0, 6000.0, -2200.0, 2200.0
+    pa0, pa1 = 1900.0, 2000.0  # partition A, wide gap
+    pb0, pb1 = 3800.0, 3900.0  # partition B, narrow gap
+    wide, narrow = (-550.0, 550.0), (-225.0, 225.0)
+    partitions = (
+        Box(pa0, pa1, y0, wide[0], WALL_HEIGHT_MM),
+        Box(pa0, pa1, wide[1], y1, WALL_HEIGHT_MM),
+        Box(pb0, pb1, y0, narrow[0], WALL_HEIGHT_MM),
+        Box(pb0, pb1, narrow[1], y1, WALL_HEIGHT_MM),
     )
     boxes = (
         Box(800.0, 1200.0, 550.0, 950.0, 400.0),
         Box(1300.0, 1700.0, -1100.0, -600.0, 600.0),
-        Box(2700.0, 3100.0, 1000.0, 1400.0, 300.0),
+        Box(2100.0, 2400.0, -1100.0, -700.0, 500.0),
     )
-    stairs = DropOff(3900.0, x1, y0, 600.0, 170.0)
-    world = World(boxes=(*boxes, *partition, *walls(x0, x1, y0, y1)), dropoffs=(stairs,))
+    stairs = DropOff(pa1, pb0, y0, -1700.0, 170.0)
+    world = World(boxes=(*boxes, *partitions, *walls(x0, x1, y0, y1)), dropoffs=(stairs,))
     return Course(
         name="builtin",
         world=world,
@@ -80,10 +82,10 @@ def builtin_course() -> Course:
         labels=(
             ("box 1", 1000.0, 750.0),
             ("box 2", 1500.0, -850.0),
-            ("box 3", 2900.0, 1200.0),
+            ("box 3", 2250.0, -900.0),
             ("wide passage", 1700.0, 0.0),
-            ("narrow passage", 1700.0, 1475.0),
-            ("stairs down", 4700.0, -800.0),
+            ("narrow passage", 4100.0, 0.0),
+            ("stairs down", 2900.0, -1950.0),
         ),
     )
 
@@ -99,6 +101,21 @@ def empty_room(length_mm: float = 4000.0, width_mm: float = 3000.0) -> Course:
         start_pose=(0.0, 0.0, 0.0),
         x_range_mm=(x0 - WALL_MM, x1 + WALL_MM),
         y_range_mm=(y0 - WALL_MM, y1 + WALL_MM),
+    )
+
+
+def box_ahead() -> Course:
+    """A walled room 6 m long with one box (600 mm tall) straight ahead: its near face 2 m in
+    front of the chair's axle (1.6 m in front of its footrests)."""
+    x0, x1, y0, y1 = -1000.0, 5000.0, -2000.0, 2000.0
+    box = Box(2000.0, 2400.0, -400.0, 400.0, 600.0)
+    return Course(
+        name="box-ahead",
+        world=World(boxes=(box, *walls(x0, x1, y0, y1))),
+        start_pose=(0.0, 0.0, 0.0),
+        x_range_mm=(x0 - WALL_MM, x1 + WALL_MM),
+        y_range_mm=(y0 - WALL_MM, y1 + WALL_MM),
+        labels=(("box", 2200.0, 0.0),),
     )
 
 
@@ -119,16 +136,38 @@ def demo_rider() -> HeadScript:
     )
 
 
+DEMO_STORY = (
+    (1.0, 1.0, 0.0, "forward through the wide passage towards the narrow one"),
+    (26.0, 0.0, 0.0, "rest"),
+    (27.0, -1.0, 0.0, "back away from the narrow passage"),
+    (29.5, 0.0, 0.0, "rest"),
+    (30.5, 0.0, -1.0, "turn right, towards the stairs"),
+    (35.0, 0.0, 0.0, "rest"),
+    (37.0, 1.0, 0.0, "forward towards the stairs"),
+    (50.0, 0.0, 0.0, "rest"),
+    (52.0, 0.0, -1.0, "turn right, towards box 3 (seen on the way, now beside the chair)"),
+    (60.0, 0.0, 0.0, "rest"),
+)
+
+
+def demo_joystick() -> JoystickScript:
+    """The demo's rider on the joystick (the only input that can back away): forward through
+    the wide passage until the narrow one refuses, back off, turn right, forward until the
+    stairs refuse, then turn right towards box 3, which the laser no longer sees — refused from
+    the map. Moves: :data:`DEMO_STORY` ``(t_s, forward, turn, what)``."""
+    return JoystickScript(tuple((t, f, w) for t, f, w, _ in DEMO_STORY))
+
+
 def demo_keys() -> KeyScript:
     """The same ride as :func:`demo_rider` on the keyboard."""
     return KeyScript(((1.3, "forward"), (34.6, "left"), (45.6, "forward"), (58.1, "stop")))
 
 
-COURSES = {"builtin": builtin_course, "empty-room": empty_room}
+COURSES = {"builtin": builtin_course, "empty-room": empty_room, "box-ahead": box_ahead}
 
 
 def get_course(name: str) -> Course:
-    """A named course (``builtin`` or ``empty-room``)."""
+    """A named course (``builtin``, ``empty-room`` or ``box-ahead``)."""
     try:
         return COURSES[name]()
     except KeyError:

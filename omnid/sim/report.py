@@ -150,6 +150,45 @@ def summary_lines(result: SimResult) -> list[str]:
     return lines
 
 
+def _x_at(traj: NDArray[np.float64], t_s: float) -> float:
+    i = min(int(np.searchsorted(traj[:, 0], t_s)), len(traj) - 1)
+    return float(traj[i, 1])
+
+
+def story_checks(result: SimResult) -> list[tuple[str, bool, str]]:
+    """The demo's story, checked against the run: ``(step, happened, evidence)``. Times are
+    those of :data:`omnid.sim.course.DEMO_STORY`."""
+
+    def refused(t0: float, t1: float, reason: str) -> list[tuple[float, str]]:
+        return [(t, m) for t, m in result.refusals if t0 <= t < t1 and reason in m]
+
+    traj = result.trajectory
+    x_max = float(traj[:, 1].max()) if len(traj) else 0.0
+    rear_mm = ChairSettings().footprint_rear_mm
+    steps = [
+        ("through the wide passage", x_max - rear_mm > 2000.0, f"axle reached x = {x_max:.0f} mm"),
+    ]
+    for what, t0, t1, reason in (
+        ("narrow passage refused", 1.0, 27.0, "obstacle_stop"),
+        ("stopped before the stairs", 37.0, 50.0, "dropoff_stop"),
+        ("turn towards box 3 refused", 52.0, 60.0, "obstacle_stop"),
+    ):
+        hits = refused(t0, t1, reason)
+        if what.startswith("narrow"):  # only once through the wide passage
+            hits = [h for h in hits if _x_at(traj, h[0]) - rear_mm > 2000.0]
+        ev = f"t = {hits[0][0]:.2f} s: {hits[0][1]}" if hits else f"no {reason} in {t0}-{t1} s"
+        steps.append((what, bool(hits), ev))
+    n = len(result.contacts)
+    steps.append(
+        (
+            "no collision, no fall",
+            n == 0,
+            f"{n} contacts, closest approach {result.min_clearance_mm:.0f} mm",
+        )
+    )
+    return steps
+
+
 def write_report(
     out_dir: str | Path,
     course: Course,
@@ -157,19 +196,27 @@ def write_report(
     title: str,
     notes: list[str] | None = None,
     chair_settings: ChairSettings | None = None,
+    story: bool = False,
 ) -> Path:
     """Write ``report.md`` and ``course.png`` into ``out_dir``; returns the report's path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     draw_run(out / "course.png", course, result, chair_settings)
-    lines = [f"# {title}", "", *(notes or []), "", "## Figures", "", *summary_lines(result), ""]
+    lines = [f"# {title}", "", *(notes or []), ""]
+    if story:
+        lines += ["## Story", ""]
+        lines += [
+            f"- [{'x' if ok else ' '}] {what} — {ev}" for what, ok, ev in story_checks(result)
+        ]
+        lines.append("")
+    lines += ["## Figures", "", *summary_lines(result), ""]
     lines += ["![course](course.png)", ""]
     if result.contacts:
         lines += ["## Collisions and falls", ""]
         lines += [f"- t = {t:.2f} s: {c.kind} ({c.part})" for t, c in result.contacts]
         lines.append("")
     if result.refusals:
-        lines += ["## Refusals", ""]
+        lines += ["## Refusals (time, command, reasons)", ""]
         shown = result.refusals[:40]
         lines += [f"- t = {t:.2f} s: {msg}" for t, msg in shown]
         if len(result.refusals) > len(shown):

@@ -16,9 +16,10 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 from omnid.errors import InputError
 
@@ -111,6 +112,69 @@ class KeyScript:
     def between(self, t0_s: float, t1_s: float) -> list[tuple[float, str]]:
         """Presses with t0 < t ≤ t1."""
         return [(t, c) for t, c in self.presses if t0_s < t <= t1_s]
+
+
+@dataclass(frozen=True)
+class JoystickScript:
+    """Stick positions ``(t_s, forward, turn)`` (each in [-1, 1]; + ahead, + left), each held
+    until the next — a proportional hand control, the only rider input that can reverse."""
+
+    moves: tuple[tuple[float, float, float], ...]
+    _t: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not self.moves:
+            raise InputError("joystick script: needs at least one (t_s, forward, turn) move")
+        for t, f, w in self.moves:
+            if not (math.isfinite(t) and -1.0 <= f <= 1.0 and -1.0 <= w <= 1.0):
+                raise InputError(
+                    f"joystick script: ({t}, {f}, {w}) must be finite, axes in [-1, 1]"
+                )
+        if any(b[0] < a[0] for a, b in itertools.pairwise(self.moves)):
+            raise InputError("joystick script: times must not decrease")
+        object.__setattr__(self, "_t", np.array([m[0] for m in self.moves]))
+
+    @property
+    def duration_s(self) -> float:
+        return self.moves[-1][0]
+
+    def at(self, t_s: float) -> tuple[float, float]:
+        """(forward, turn) at ``t_s`` (centred before the first move)."""
+        i = int(np.searchsorted(self._t, t_s, side="right")) - 1
+        if i < 0:
+            return 0.0, 0.0
+        return self.moves[i][1], self.moves[i][2]
+
+
+#: The random rider's moves: (name, probability, forward, turn, shortest hold s, longest hold s).
+RANDOM_MOVES: tuple[tuple[str, float, float, float, float, float], ...] = (
+    ("forward", 0.35, 0.8, 0.0, 2.0, 10.0),
+    ("arc left", 0.08, 0.6, 0.4, 1.0, 4.0),
+    ("arc right", 0.08, 0.6, -0.4, 1.0, 4.0),
+    ("turn left in place", 0.14, 0.0, 0.6, 1.0, 4.0),
+    ("turn right in place", 0.14, 0.0, -0.6, 1.0, 4.0),
+    ("reverse", 0.05, -0.7, 0.0, 1.0, 3.0),
+    ("reverse left", 0.05, -0.6, 0.5, 1.0, 3.0),
+    ("reverse right", 0.05, -0.6, -0.5, 1.0, 3.0),
+    ("stop", 0.06, 0.0, 0.0, 0.5, 2.0),
+)
+
+
+def random_ride(seed: int, duration_s: float) -> JoystickScript:
+    """A rider's random commands for ``duration_s``: mostly forward, turns in place, arcs and
+    short reversing out (what a rider does when the chair refuses to go on), a pause between
+    moves as a hand does. Reproducible from ``seed``."""
+    rng = np.random.default_rng(seed)
+    p = np.array([m[1] for m in RANDOM_MOVES])
+    moves: list[tuple[float, float, float]] = []
+    t = 0.0
+    while t < duration_s:
+        _, _, fwd, turn, lo, hi = RANDOM_MOVES[int(rng.choice(len(RANDOM_MOVES), p=p / p.sum()))]
+        moves.append((t, fwd, turn))
+        t += float(rng.uniform(lo, hi))
+        moves.append((t, 0.0, 0.0))
+        t += 0.3
+    return JoystickScript(tuple(moves))
 
 
 def command_of(roll_deg: float, pitch_deg: float, threshold_deg: float) -> str:

@@ -23,9 +23,11 @@ from omnid.errors import OmnidError
 log = logging.getLogger(__name__)
 
 
-def make_core(rig_x_offset_mm: float = 300.0) -> Any:
+def make_core(rig_x_offset_mm: float = 300.0, joystick: bool = False) -> Any:
     """The daemon's ``ControlCore`` with its default configuration (``etc/omnid.yaml``
-    defaults), told where the simulated rig sits on the chair."""
+    defaults), told where the simulated rig sits on the chair. ``joystick``: the rider uses a
+    joystick (``rider.joystick.enabled``) instead of the head-tilt sensor (a silent enabled
+    source would stop the chair)."""
     try:
         from omnid.daemon.config import OmnidConfig  # type: ignore[import-not-found,unused-ignore]
         from omnid.daemon.core import ControlCore  # type: ignore[import-not-found,unused-ignore]
@@ -39,24 +41,34 @@ def make_core(rig_x_offset_mm: float = 300.0) -> Any:
         config,
         perception=dataclasses.replace(config.perception, rig_x_offset_mm=rig_x_offset_mm),
     )
+    if joystick:
+        r = config.rider
+        rider = dataclasses.replace(
+            r,
+            tilt=dataclasses.replace(r.tilt, enabled=False),
+            joystick=dataclasses.replace(r.joystick, enabled=True),
+        )
+        config = dataclasses.replace(config, rider=rider)
     return ControlCore(config)
 
 
 def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int:
     """Fast-mode run of ``args`` (course, duration_s, perception, seed, out, quiet)."""
-    from omnid.sim.course import demo_rider, get_course
+    from omnid.sim.course import demo_joystick, get_course
     from omnid.sim.report import summary_lines, write_report
     from omnid.sim.simulator import SimSettings, Simulator
 
     course = get_course(args.course)
-    rider = None
+    joystick = None
     notes = [f"Course `{course.name}`, perception `{args.perception}`, seed {args.seed}."]
     if controller is None:
-        controller = make_core()
-        rider = demo_rider()
+        controller = make_core(joystick=True)
+        joystick = demo_joystick()
         notes.append(
-            "Driven by the daemon core (`ControlCore`) with the scripted demo rider "
-            "(head tilts: forward towards the stairs, left, forward towards box 3, stop)."
+            "Driven by the daemon core (`ControlCore`) with the scripted demo rider on the "
+            "joystick: forward through the wide passage, the narrow passage (refused), back "
+            "off, turn right, forward to the stairs (refused), turn right towards box 3, seen "
+            "on the way and now beside the chair outside the laser's field (refused)."
         )
     else:
         notes.append("Open loop: fixed duties, no daemon — the chair is unguarded.")
@@ -72,20 +84,50 @@ def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int
         )
 
     settings = SimSettings(perception=args.perception, seed=args.seed)
-    sim = Simulator(course, controller, settings=settings, rider=rider, progress=progress)
+    sim = Simulator(course, controller, settings=settings, joystick=joystick, progress=progress)
     if not args.quiet:
         print(f"{title}: {args.duration_s:.0f} s in course '{course.name}'", flush=True)
     result = sim.run(args.duration_s)
-    path = write_report(args.out, course, result, title, notes, sim.chair.settings)
+    path = write_report(
+        args.out, course, result, title, notes, sim.chair.settings, story=joystick is not None
+    )
     for line in summary_lines(result):
         print(line.replace("- ", "  ", 1))
     print(f"report: {path}  (drawing: {path.parent / 'course.png'})")
-    if controller is not None and rider is not None and (result.collisions or result.falls):
+    if joystick is not None and (result.collisions or result.falls):
         print(
             "the simulated chair collided or fell: the daemon failed this course", file=sys.stderr
         )
         return 1
     return 0
+
+
+def write_floor_capture(directory: str, seed: int = 0) -> None:
+    """An empty floor rendered by the simulated rig (as installed: misaligned), laser on, as
+    ``mask1/base1/mask2/base2.png`` in ``directory`` — the installer's capture for
+    ``omnid calibrate --floor-depth-mm <mount height>``."""
+    from pathlib import Path
+
+    import cv2
+
+    from omnid.sim.render import render_capture
+    from omnid.sim.simulator import misaligned_rig
+    from omnid.sim.world import RigMount
+
+    h = RigMount().height_mm
+    rig = misaligned_rig(h)
+    from omnid.core.laser import DotPattern
+
+    cap = render_capture(rig, DotPattern().on_plane(h), seed=seed + 7919)
+    out = Path(directory)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for name in ("mask1", "base1", "mask2", "base2"):
+            if not cv2.imwrite(str(out / f"{name}.png"), getattr(cap, name)):
+                raise OSError("cv2.imwrite failed")
+    except OSError as exc:
+        raise OmnidError(f"--floor-capture {directory}: cannot write ({exc})") from exc
+    print(f"floor capture: {out} (floor depth {h:.0f} mm)", flush=True)
 
 
 def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
@@ -113,20 +155,59 @@ def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
         cap = sim.render(laser_on=laser)
         return sim.now_s, cap.base1, cap.base2
 
+    import signal
+
+    import numpy as np
+
+    from omnid.sim.simulator import _clearance, _perimeter
+
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
+    boxes = np.array(
+        [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
+    ).reshape(-1, 4)
+    drops = np.array(
+        [(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs]
+    ).reshape(-1, 4)
     pty = emu.open_pty()
     print(f"control unit: {pty}", flush=True)
     print(f"cameras: sim+unix://{args.serve}", flush=True)
     deadline = t0 + args.duration_s
+    closest = float("inf")
+    contacts = 0
+    last_print = t0
     try:
         with FrameServer(args.serve, frame):
-            while time.monotonic() < deadline:
+            while time.monotonic() < deadline and not stop:
                 time.sleep(0.02)
                 _ = emu.clocks  # advance the plant to now
-                for c in sim.chair.contacts(course.world):
+                chair = sim.chair
+                supports = np.array(list(chair.support_points().values()))
+                closest = min(
+                    closest, _clearance(_perimeter(chair), boxes), _clearance(supports, drops)
+                )
+                for c in chair.contacts(course.world):
+                    contacts += 1
                     print(f"t={time.monotonic() - t0:.2f} s: {c.kind} ({c.part})", flush=True)
-                    return 1
+                    stop.append(True)
+                now = time.monotonic()
+                if now - last_print >= 0.5:
+                    last_print = now
+                    x, y, th = chair.pose
+                    print(
+                        f"t={now - t0:.2f} s chair ({x:.0f}, {y:.0f}) mm {np.degrees(th):.1f}° "
+                        f"speed {chair.left_speed_mm_s:.0f}/{chair.right_speed_mm_s:.0f} mm/s "
+                        f"laser {'on' if emu.laser_on else 'off'}",
+                        flush=True,
+                    )
     except KeyboardInterrupt:
         pass
     finally:
         emu.close()
-    return 0
+    x, y, _ = sim.chair.pose
+    print(
+        f"result: contacts {contacts}, closest approach {closest:.0f} mm, "
+        f"chair at ({x:.0f}, {y:.0f}) mm",
+        flush=True,
+    )
+    return 1 if contacts else 0

@@ -47,7 +47,7 @@ from omnid.core.types import PointClass, PointCloud, StereoCapture
 from omnid.errors import OmnidError
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
-from omnid.sim.rider import HeadScript, KeyScript
+from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
 from omnid.sim.world import RigMount, cast_laser, rig_to_world
 
 log = logging.getLogger(__name__)
@@ -434,6 +434,9 @@ class OpenLoopDriver:
     def on_key(self, command: str, now_s: float) -> None:
         pass
 
+    def on_joystick(self, reading: Any) -> None:
+        pass
+
     def on_perception(self, cloud: PointCloud, capture_time_s: float) -> None:
         pass
 
@@ -457,6 +460,24 @@ def _tilt_reading_type() -> Any:
     except ImportError:
         return SimTiltReading
     return TiltReading
+
+
+@dataclass(frozen=True)
+class SimJoystickReading:
+    """A joystick reading (the fields of ``omnid.devices.joystick.JoystickReading``)."""
+
+    forward: float
+    turn: float
+    timestamp_s: float
+
+
+def _joystick_reading_type() -> Any:
+    """The device layer's ``JoystickReading`` when present, else :class:`SimJoystickReading`."""
+    try:
+        from omnid.devices.joystick import JoystickReading  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        return SimJoystickReading
+    return JoystickReading
 
 
 class EmulatedTiltSensor:
@@ -574,6 +595,7 @@ class Simulator:
         pattern: DotPattern | None = None,
         progress: Callable[[float, Simulator], None] | None = None,
         faults: Sequence[Fault] = (),
+        joystick: JoystickScript | None = None,
     ) -> None:
         self.course = course
         self.controller = controller
@@ -582,6 +604,7 @@ class Simulator:
         self.chair = Chair(chair_settings, pose=course.start_pose)
         self.rider = rider
         self.keys = keys
+        self.joystick = joystick
         self.mount = mount or RigMount()
         if rig is None:
             h = self.mount.height_mm
@@ -621,6 +644,9 @@ class Simulator:
         self._drop_rects = np.array(drop_rects, dtype=np.float64).reshape(-1, 4)
         self._last_status: Any = None
         self._active: set[str] = set()
+        # Laser hits per pose: a chair standing still (refused, resting) sees the same dots, so
+        # truth perception casts them once per pose; fresh noise is drawn on every use.
+        self._hits_cache: dict[tuple[float, float, float], Any] = {}
 
     # -- installation -------------------------------------------------------------------------
 
@@ -640,10 +666,16 @@ class Simulator:
     # -- camera views -------------------------------------------------------------------------
 
     def laser_hits(self, pose: tuple[float, float, float] | None = None) -> Any:
-        """``cast_laser`` at ``pose`` (default: the chair's current pose)."""
-        return cast_laser(
-            self.course.world, pose or self.chair.pose, self.mount, self.pattern, self.rig
-        )
+        """``cast_laser`` at ``pose`` (default: the chair's current pose), remembered for the
+        last few distinct poses (the world does not change during a run)."""
+        key = pose or self.chair.pose
+        hits = self._hits_cache.get(key)
+        if hits is None:
+            hits = cast_laser(self.course.world, key, self.mount, self.pattern, self.rig)
+            if len(self._hits_cache) >= 64:
+                self._hits_cache.pop(next(iter(self._hits_cache)))
+            self._hits_cache[key] = hits
+        return hits
 
     def render(
         self,
@@ -794,15 +826,20 @@ class Simulator:
         # A daemon core runs the real perception cycle (laser off → mask → laser on → base);
         # simple probes get a capture every period with the laser as it is.
         cycle = _Cycle() if hasattr(ctl, "capturing") and hasattr(ctl, "laser_on") else None
+        joy_reading = _joystick_reading_type()
+        last_pose: tuple[float, float, float] | None = None
 
-        traj: list[tuple[float, float, float, float]] = []
-        speeds: list[tuple[float, float, float]] = []
-        cmds: list[tuple[float, float, float, float, float]] = []
+        # Records preallocated for the whole run (no per-tick allocations; a soak's memory
+        # figure then shows the daemon, not the recorder).
+        traj = np.empty((n_ticks // k_rec + 2, 4))
+        speeds = np.empty((n_ticks + 1, 3))
+        cmds = np.empty((n_ticks // k_ctrl + 1, 5))
+        n_traj = n_speed = n_cmd = 0
         contacts: list[tuple[float, Contact]] = []
         seen: list[NDArray[np.float64]] = []
         pending: list[tuple[float, float, PointCloud, tuple[float, float, float]]] = []
         t_perc: list[float] = []
-        t_ctrl: list[float] = []
+        ctrl_n, ctrl_sum, ctrl_max = 0, 0.0, 0.0  # control-step wall times, s
         errors: list[tuple[float, str]] = []
         min_clear = math.inf
         refusals: list[tuple[float, str]] = []
@@ -830,6 +867,13 @@ class Simulator:
                 reading = self.tilt.poll(now)
                 if reading is not None:
                     ctl.on_tilt(reading)
+            if (
+                self.joystick is not None
+                and k % k_tilt == 0
+                and "tilt_unplugged" not in self._active
+            ):
+                fwd, turn = self.joystick.at(now)
+                ctl.on_joystick(joy_reading(fwd, turn, now))
             if self.keys is not None:
                 for _, command in self.keys.between(now - dt, now):
                     ctl.on_key(command, now)
@@ -856,24 +900,27 @@ class Simulator:
             if k % k_ctrl == 0:
                 w0 = time.perf_counter()
                 command = ctl.step(now)
-                t_ctrl.append(time.perf_counter() - w0)
+                took_ctrl = time.perf_counter() - w0
+                ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
+                ctrl_max = max(ctrl_max, took_ctrl)
                 last_refusal = self._note_decision(now, refusals, last_refusal)
                 status = self.control_unit.exchange(command, now)
                 if status is not None:
                     self._last_status = status
                     ctl.on_status(status)
-                cmds.append(
-                    (
-                        now,
-                        float(command.left_duty),
-                        float(command.right_duty),
-                        float(command.laser_on),
-                        float(command.enable),
-                    )
+                cmds[n_cmd] = (
+                    now,
+                    float(command.left_duty),
+                    float(command.right_duty),
+                    float(command.laser_on),
+                    float(command.enable),
                 )
-            speeds.append((now, self.chair.left_speed_mm_s, self.chair.right_speed_mm_s))
+                n_cmd += 1
+            speeds[n_speed] = (now, self.chair.left_speed_mm_s, self.chair.right_speed_mm_s)
+            n_speed += 1
             if k % k_rec == 0:
-                traj.append((now, *self.chair.pose))
+                traj[n_traj] = (now, *self.chair.pose)
+                n_traj += 1
                 min_clear = min(
                     min_clear,
                     _clearance(_perimeter(self.chair), self._box_rects),
@@ -884,7 +931,9 @@ class Simulator:
                 if self.progress is not None and now - last_progress >= 1.0:
                     last_progress = now
                     self.progress(now, self)
-            found = self.chair.contacts(self.course.world)
+            pose_now = self.chair.pose
+            found = self.chair.contacts(self.course.world) if pose_now != last_pose else []
+            last_pose = pose_now  # a chair that has not moved touches nothing new
             new = [c for c in found if all(c != old for _, old in contacts)]
             if new:
                 min_clear = 0.0
@@ -892,7 +941,8 @@ class Simulator:
                 log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
                 contacts.append((now, c))
             if new and s.stop_on_contact:
-                traj.append((now, *self.chair.pose))
+                traj[n_traj] = (now, *self.chair.pose)
+                n_traj += 1
                 break
             if k < n_ticks:
                 self.control_unit.advance(now, dt)
@@ -903,8 +953,9 @@ class Simulator:
             "realtime_factor": self.now_s / wall if wall > 0 else math.inf,
             "perception_mean_ms": 1e3 * float(np.mean(t_perc)) if t_perc else 0.0,
             "perception_max_ms": 1e3 * float(np.max(t_perc)) if t_perc else 0.0,
-            "control_step_mean_ms": 1e3 * float(np.mean(t_ctrl)) if t_ctrl else 0.0,
-            "control_step_max_ms": 1e3 * float(np.max(t_ctrl)) if t_ctrl else 0.0,
+            "control_step_mean_ms": 1e3 * ctrl_sum / ctrl_n if ctrl_n else 0.0,
+            "control_step_max_ms": 1e3 * ctrl_max,
+            "control_steps": float(ctrl_n),
             "perception_cycles": float(len(t_perc)),
             "perception_errors": float(len(errors)),
             "install_s": self.install_s,
@@ -914,14 +965,14 @@ class Simulator:
         }
         return SimResult(
             duration_s=self.now_s,
-            trajectory=np.array(traj, dtype=np.float64).reshape(-1, 4),
-            commands=np.array(cmds, dtype=np.float64).reshape(-1, 5),
+            trajectory=traj[:n_traj].copy(),
+            commands=cmds[:n_cmd].copy(),
             contacts=contacts,
             refusals=refusals,
             seen=np.vstack(seen) if seen else np.zeros((0, 3)),
             min_clearance_mm=min_clear,
             timings=timings,
-            wheel_speeds=np.array(speeds, dtype=np.float64).reshape(-1, 3),
+            wheel_speeds=speeds[:n_speed].copy(),
             faults=self.faults,
             perception_errors=errors,
         )

@@ -17,6 +17,7 @@ vectorised over rays (slab tests against all boxes at once).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -210,19 +211,24 @@ def _directions_to_world(d_rig: NDArray[np.float64], theta_rad: float) -> NDArra
 
 def _slab(
     origin: NDArray[np.float64], direction: NDArray[np.float64], boxes: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Slab test of N rays against B axis-aligned boxes.
 
-    Returns (t_near, t_far) (N, B) of the ray parameter where each ray enters and leaves each box
-    (t_near > t_far: missed), and the (N, B) index 0/1/2 of the axis of the entry face.
+    Returns (t_near, t_far) (B, N) of the ray parameter where each ray enters and leaves each box
+    (t_near > t_far: missed). Box-major and axis by axis, so every array is contiguous along the
+    rays: numpy reduces a short last axis slowly, and this runs for every ray of every capture.
     """
-    d = np.where(np.abs(direction) < 1e-12, 1e-12, direction)
-    inv = 1.0 / d  # (N, 3)
-    lo = (boxes[None, :, 0, :] - origin[:, None, :]) * inv[:, None, :]  # (N, B, 3)
-    hi = (boxes[None, :, 1, :] - origin[:, None, :]) * inv[:, None, :]
-    t1 = np.minimum(lo, hi)
-    t2 = np.maximum(lo, hi)
-    return t1.max(axis=2), t2.min(axis=2), t1.argmax(axis=2)
+    t_near = np.full((len(boxes), len(origin)), -np.inf)
+    t_far = np.full((len(boxes), len(origin)), np.inf)
+    for axis in range(3):
+        d = direction[:, axis]
+        inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
+        o = origin[:, axis]
+        lo = (boxes[:, 0, axis, None] - o) * inv
+        hi = (boxes[:, 1, axis, None] - o) * inv
+        np.maximum(t_near, np.minimum(lo, hi), out=t_near)
+        np.minimum(t_far, np.maximum(lo, hi), out=t_far)
+    return t_near, t_far
 
 
 def _blocked(
@@ -231,10 +237,19 @@ def _blocked(
     """(N,) True where the segment start→end passes through the inside of any box."""
     if len(boxes) == 0 or len(start) == 0:
         return np.zeros(len(start), dtype=bool)
-    tn, tf, _ = _slab(start, end - start, boxes)
+    tn, tf = _slab(start, end - start, boxes)
     lo = np.maximum(tn, 0.0)
     hi = np.minimum(tf, 1.0)
-    return np.any(hi - lo > _GRAZE, axis=1)
+    return np.any(hi - lo > _GRAZE, axis=0)
+
+
+@functools.lru_cache(maxsize=8)
+def _pattern_directions(pattern: DotPattern) -> NDArray[np.float64]:
+    """``pattern.directions()``, computed once per pattern (read-only): the simulator casts the
+    same pattern every perception cycle."""
+    d = pattern.directions()
+    d.setflags(write=False)
+    return d
 
 
 def cast_laser(
@@ -254,7 +269,7 @@ def cast_laser(
     """
     px, py, th = _pose(pose)
     H = mount.height_mm
-    d_rig = pattern.directions()
+    d_rig = _pattern_directions(pattern)
     n = len(d_rig)
     origin_w = rig_to_world(np.zeros((1, 3)), (px, py, th), mount)[0]
     o = np.broadcast_to(origin_w, (n, 3)).copy()
@@ -269,21 +284,21 @@ def cast_laser(
     # side — the bottom or a wall — and that is where the dot is.
     pits = world._pit_array()
     if len(pits):
-        tn, tf, _ = _slab(o, d, pits)
-        enters = (tn <= tf) & np.isclose(tn, t_floor[:, None], rtol=0, atol=1e-6 * H)
+        tn, tf = _slab(o, d, pits)
+        enters = (tn <= tf) & (np.abs(tn - t_floor) <= 1e-6 * H)  # (P, N)
         if np.any(enters):
-            k = np.argmax(enters, axis=1)
-            hit = enters.any(axis=1)
-            t = np.where(hit, tf[np.arange(n), k], t)
+            k = np.argmax(enters, axis=0)
+            hit = enters.any(axis=0)
+            t = np.where(hit, tf[k, np.arange(n)], t)
             truth[hit] = PointClass.DROPOFF
 
     # Boxes: the first entry in front of the ray and before the floor hit wins.
     boxes = world._box_array()
     if len(boxes):
-        tn, tf, _ = _slab(o, d, boxes)
-        valid = (tn <= tf) & (tn > 0)
+        tn, tf = _slab(o, d, boxes)
+        valid = (tn <= tf) & (tn > 0)  # (B, N)
         tn = np.where(valid, tn, np.inf)
-        tb = tn.min(axis=1)
+        tb = tn.min(axis=0)
         first = tb < t
         t = np.where(first, tb, t)
         truth[first] = PointClass.OBSTACLE
@@ -294,10 +309,12 @@ def cast_laser(
 
     mirrors_rig = [np.array([[0.0, rig.cam1.y_mm, 0.0]]), np.array([[0.0, rig.cam2.y_mm, 0.0]])]
     vis = []
-    for cam, m_rig in zip((rig.cam1, rig.cam2), mirrors_rig, strict=True):
+    for cam, m_rig, rc in zip(
+        (rig.cam1, rig.cam2), mirrors_rig, (pixels[:, :2], pixels[:, 2:]), strict=True
+    ):
         m_w = rig_to_world(m_rig, (px, py, th), mount)[0]
-        end = np.broadcast_to(m_w, (n, 3)).copy()
-        seen = cam.in_disk(cam.project(xyz))
+        end = np.broadcast_to(m_w, (n, 3))
+        seen = cam.in_disk(rc)
         seen &= ~_blocked(hit_w, end, boxes)
         seen &= ~_under_ground(hit_w, end, pits)
         vis.append(seen)
@@ -313,10 +330,10 @@ def _under_ground(
     if len(pits) == 0 or not np.any(below):
         return np.zeros(len(start), dtype=bool)
     direction = end - start
-    tn, tf, _ = _slab(start, direction, pits)
+    tn, tf = _slab(start, direction, pits)
     # Exit point of the pit volume; it is through the open top only if its height is ~0.
     inside = (tn <= tf + 1e-9) & (tf >= 0)
-    tf_any = np.where(inside, tf, np.inf).min(axis=1)
+    tf_any = np.where(inside, tf, np.inf).min(axis=0)
     exit_h = start[:, 2] + np.where(np.isfinite(tf_any), tf_any, 0.0) * direction[:, 2]
     return below & np.isfinite(tf_any) & (exit_h < -1e-6)
 

@@ -12,7 +12,7 @@ from omnid.core.detect import DetectionParams, detect_dots
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.errors import ConfigError, InputError
-from omnid.sim.render import RenderOptions, render_capture, visible_truth
+from omnid.sim.render import RenderOptions, draw_spots, render_capture, visible_truth
 
 RIG = StereoRig.nominal()
 DOTS = DotPattern(rows=30, cols=34, step_slope=0.07).on_plane(RIG.floor_depth_mm)  # ~870 in disk
@@ -118,3 +118,18 @@ def test_params_load_from_config_with_range_checks():
         from_mapping(DetectionParams, {"best_relative_peak": 1.5})
     with pytest.raises(ConfigError, match="ring_e1_gra"):
         from_mapping(DetectionParams, {"ring_e1_gra": 1.0})
+
+
+def test_lone_dim_dots_far_from_the_pattern_and_near_the_image_edge_are_found():
+    # The best method processes only the box around what stands out: a dot on its own, far
+    # from the lattice, must still make the box include it; dots 3–5 px from the image's
+    # edge keep the whole-frame behaviour (the neighbourhood tests use in-image pixels only).
+    rng = np.random.default_rng(5)
+    truth = np.array([[40.3, 300.6], [300.2, 80.7], [440.8, 600.1], [3.6, 200.2], [250.4, 4.3]])
+    spots = draw_spots((480, 640), truth, 1.3, 30.0)  # smoothed peak ≈ 19, threshold 10
+    mask = (60.0 + rng.normal(0, 2.0, (480, 640))).clip(0, 255)
+    base = (60.0 + spots + rng.normal(0, 2.0, (480, 640))).clip(0, 255)
+    found = detect_dots(np.rint(mask).astype(np.uint8), np.rint(base).astype(np.uint8), "best")
+    assert found.shape == (5, 3)
+    d = np.hypot(found[:, None, 0] - truth[None, :, 0], found[:, None, 1] - truth[None, :, 1])
+    assert d.min(axis=0).max() < 0.3  # every dot found, each within 0.3 px (noise σ = 2)

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from omnid.core.classify import with_classes
-from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings, classified
+from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings, _lattice_strips, classified
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.occupancy import CellState, GridSettings
@@ -234,6 +234,8 @@ def test_settings_validated_and_blocked_cells_listed():
         FreeSpaceSettings(free_max_edge_mm=0.0)
     with pytest.raises(ConfigError, match="resolution_mm"):
         FreeSpaceSettings(grid=GridSettings(resolution_mm=-1.0))
+    with pytest.raises(ConfigError, match="neighbours"):
+        FreeSpaceSettings(neighbours="voronoi")
     m = fresh()
     assert m.blocked_xy_mm().shape == (0, 2)
     m.update(_obstacle_cloud([[1000.0, 300.0]]), 0.0)
@@ -309,3 +311,109 @@ def test_driving_and_turning_through_a_scene_keeps_obstacles_where_they_are_in_t
         near_box |= on
         assert on.sum() >= 2, f"box {b} forgotten"
     assert np.mean(near_box) >= 0.97
+
+
+# -- the lattice strips (the fast path of update) ---------------------------------------------
+
+
+def _cross(a, b):
+    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+
+def _lattice(rows: int, cols: int, step: float = 0.1, noise: float = 0.0, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(0.3 + step * np.arange(rows), step * (np.arange(cols) - cols / 2))
+    u, v = u.ravel(), v.ravel()
+    return u + rng.normal(0, noise, u.shape), v + rng.normal(0, noise, v.shape)
+
+
+def test_lattice_strips_stitch_adjacent_rows_into_half_cells():
+    u, v = _lattice(6, 9, noise=0.002)
+    perm = np.random.default_rng(1).permutation(len(u))  # input order does not matter
+    s = _lattice_strips(u[perm], v[perm])
+    assert s is not None
+    tri = perm[s.tri]  # back to lattice indices: row = index // 9 ... careful, meshgrid order
+    r, c = tri % 6, tri // 6  # meshgrid(u-rows, v-cols) ravel: index = col·rows + row
+    assert len(tri) == 2 * (6 - 1) * (9 - 1)
+    # Every triangle spans two adjacent rows and two adjacent columns: a half lattice cell.
+    assert np.all(r.max(axis=1) - r.min(axis=1) == 1)
+    assert np.all(c.max(axis=1) - c.min(axis=1) == 1)
+    # Together they cover the lattice once: the areas add up to its hull.
+    p = np.column_stack([u, v])[tri]
+    area = 0.5 * np.abs(_cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
+    assert area.sum() == pytest.approx(0.1 * 5 * 0.1 * 8, rel=0.02)
+
+
+def test_lattice_rows_survive_a_missing_row_and_an_outlier_but_not_a_random_cloud():
+    u, v = _lattice(8, 7, noise=0.002)
+    keep = ~np.isclose(u, 0.3 + 0.1 * 3, atol=0.02)  # row 3 occluded
+    u, v = np.append(u[keep], 2.5), np.append(v[keep], 0.0)  # a stray dot far ahead
+    s = _lattice_strips(u, v)
+    assert s is not None and s.strip.max() + 1 == 7  # 7 rows + the outlier: 7 strips
+    rng = np.random.default_rng(3)
+    assert _lattice_strips(rng.uniform(0, 2, 200), rng.uniform(-1, 1, 200)) is None
+
+
+def test_folded_rows_leave_no_holes_in_the_free_area():
+    # Far floor dots with large depth noise: neighbouring rows cross over each other in the
+    # plane. Overlapping strip polygons must not cancel out (cv2 fills even-odd).
+    rng = np.random.default_rng(5)
+    u, v = _lattice(16, 21, step=0.08)
+    z = 1100.0 + rng.normal(0, 25.0, u.shape)  # rows 88 mm apart, x noise σ = 25 mm·u
+    xyz = np.column_stack([u * z, v * z, z])
+    n = len(xyz)
+    s = _lattice_strips(u, v)
+    assert s is not None
+    p = xyz[:, :2][s.tri]
+    turned = _cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]) * s.flip
+    assert np.sum(turned > 0) >= 10 and np.sum(turned < 0) >= 10 * np.sum(turned > 0)
+    cloud = PointCloud(xyz, np.zeros((n, 3, 3)), np.zeros((n, 4)), np.zeros(n, np.uint8))
+    m = fresh()
+    m.update(cloud, 0.0)
+    xs, ys = np.meshgrid(np.arange(600.0, 1400.0, 25.0), np.arange(-500.0, 500.0, 25.0))
+    states = m.state_at(np.column_stack([xs.ravel(), ys.ravel()]))
+    assert np.all(states == CellState.FREE)
+
+
+def test_lattice_fill_agrees_with_a_delaunay_fill_of_the_same_dots():
+    for k, sc in enumerate(
+        (scenes.three_boxes(MOUNT), scenes.dropoff(MOUNT, 1000.0), scenes.passage(MOUNT, 900.0))
+    ):
+        cloud = scene_cloud(sc, seed=4 + k)
+        lattice, general = fresh(), fresh(neighbours="delaunay")
+        lattice.update(cloud, MOUNT.x_offset_mm)
+        general.update(cloud, MOUNT.x_offset_mm)
+        a, b = lattice.grid.states, general.grid.states
+        seen = (a != CellState.UNKNOWN) | (b != CellState.UNKNOWN)
+        assert np.mean(a[seen] == b[seen]) > 0.95, sc.name
+        for state in (CellState.OBSTACLE, CellState.DROPOFF, CellState.FREE):
+            assert np.sum((a == state) & (b == state)) >= 0.9 * np.sum(b == state), (sc, state)
+        # Where it matters for driving, they agree to a cell.
+        assert lattice.nearest_blocking_distance_mm(350.0, 3000.0) == pytest.approx(
+            general.nearest_blocking_distance_mm(350.0, 3000.0), abs=RES
+        )
+
+
+def test_strips_are_reused_only_while_they_still_fit_the_dots():
+    sc = scenes.three_boxes(MOUNT)
+    a, b = scene_cloud(sc, seed=11), scene_cloud(sc, seed=12)  # same rays, new noise
+    slopes = [(c.xyz[:, 0] / c.xyz[:, 2], c.xyz[:, 1] / c.xyz[:, 2]) for c in (a, b)]
+    strips = _lattice_strips(*slopes[0])
+    assert strips is not None and strips.fits(*slopes[1])
+    u, v = slopes[1]
+    assert not strips.fits(u[1:], v[1:])  # a dot fewer
+    i = int(np.argmax(u))
+    assert not strips.fits(u, np.where(np.arange(len(v)) == i, -v[i] - 0.05, v))  # out of order
+    assert not strips.fits(np.where(np.arange(len(u)) == i, u[i] - 0.5, u), v)  # into another row
+    # A map that reuses the strips of the capture before sees what a fresh one sees.
+    reused, fresh_map = fresh(), fresh()
+    reused.update(a, MOUNT.x_offset_mm)
+    reused.clear()
+    reused.update(b, MOUNT.x_offset_mm)
+    fresh_map.update(b, MOUNT.x_offset_mm)
+    g1, g2 = reused.grid.states, fresh_map.grid.states
+    seen = (g1 != CellState.UNKNOWN) | (g2 != CellState.UNKNOWN)
+    assert np.mean(g1[seen] == g2[seen]) > 0.98
+    assert reused.nearest_blocking_distance_mm(350.0, 3000.0) == pytest.approx(
+        fresh_map.nearest_blocking_distance_mm(350.0, 3000.0), abs=RES
+    )

@@ -1,21 +1,12 @@
-"""Fast version of tools/eval_scenes.py: calibrate a misaligned rig on the floor, then perceive
+"""Fast version of tools/eval_scenes.py (omnid.experiments.scenes): calibrate a misaligned rig on the floor, then perceive
 ray-cast scenes of omnid.sim.scenes and check matches, accuracy and classes against the truth."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-_spec = importlib.util.spec_from_file_location(
-    "eval_scenes", Path(__file__).resolve().parents[2] / "tools" / "eval_scenes.py"
-)
-assert _spec is not None and _spec.loader is not None
-ev = importlib.util.module_from_spec(_spec)
-sys.modules.setdefault("eval_scenes", ev)
-_spec.loader.exec_module(ev)
+from omnid.experiments import scenes as ev
+from omnid.sim.scenes import get_scene
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +18,7 @@ def setup():
 @pytest.mark.parametrize("name", ["passage", "dropoff", "horizontal_800", "vertical_1450"])
 def test_best_on_scenes(setup, name: str) -> None:
     rig, calib = setup
-    s = ev.evaluate(ev.get_scene(name), rig, calib, "best", seed=1)
+    s = ev.evaluate(get_scene(name), rig, calib, "best", seed=1).score
     assert s.matched >= 0.95
     assert s.wrong_rate < 0.005
     assert max(s.err_pct) <= 0.5  # mean per-axis error over range, %
@@ -38,7 +29,7 @@ def test_thesis_runs_side_by_side(setup) -> None:
     """The thesis matcher (degree-1 row polynomial) cannot follow 1-2° camera rotations: it
     matches far fewer dots than ``best`` on the same misaligned rig — the reason for ``best``."""
     rig, calib = setup
-    scene = ev.get_scene("passage")
-    thesis = ev.evaluate(scene, rig, calib, "thesis", seed=1)
-    best = ev.evaluate(scene, rig, calib, "best", seed=1)
+    scene = get_scene("passage")
+    thesis = ev.evaluate(scene, rig, calib, "thesis", seed=1).score
+    best = ev.evaluate(scene, rig, calib, "best", seed=1).score
     assert 0 < thesis.correct < best.correct

@@ -9,10 +9,10 @@ from omnid.sim.rider import HeadScript, head_script
 from omnid.sim.world import Box, DropOff, World
 
 
-def make_core() -> object:
+def make_core(joystick: bool = False) -> object:
     from omnid.sim.scenario import make_core as _make
 
-    return _make()
+    return _make(joystick=joystick)
 
 
 def room(

@@ -1,9 +1,15 @@
-"""Soak: 30 simulated minutes of random rider commands in a cluttered room.
+"""Soak: random riding in a cluttered room with the daemon core at its configured rates.
 
-Truth perception (the cast dots with their true classes) keeps this at about a minute of wall
-time on 2 cores; the rendered-image pipeline soak is ``python tools/soak.py --pipeline`` (see
-docs/benchmarks/simulation.md). The control loop runs at 10 Hz here (the daemon's default is
-50 Hz) for the same reason; the safety layer's decisions do not depend on the rate.
+The rider uses a joystick (the one input that can reverse) and does what a rider does: drives
+on, arcs, turns in place, reverses out when the chair refuses, pauses (``random_ride``). The
+daemon core runs exactly as configured: control at ``control.rate_hz`` (50 Hz), perception
+cycles at ``perception.period_s`` (0.5 s) through the real laser-off/mask/laser-on/base cycle,
+joystick read every 20 ms; truth perception (cast dots with their true classes).
+
+Duration: 3 simulated minutes. ``ControlCore.step`` costs 1–3.5 ms on the 2-core CI machine
+(its safety sweep of the footprint along the path), so 30 minutes at 50 Hz (90 000 steps) cost
+2–5 minutes of wall time — beyond this suite's budget. The half-hour soak is
+``python tools/soak.py --minutes 30`` (figures in docs/benchmarks/simulation.md).
 """
 
 from __future__ import annotations
@@ -15,11 +21,11 @@ import numpy as np
 from scenario_helpers import make_core, room
 
 from omnid.daemon.safety import Reason
-from omnid.sim.rider import head_script
+from omnid.sim.rider import random_ride
 from omnid.sim.simulator import SimSettings, Simulator
 from omnid.sim.world import Box, DropOff
 
-DURATION_S = 1800.0
+DURATION_S = 180.0
 
 
 def cluttered_room():
@@ -35,20 +41,16 @@ def cluttered_room():
     return room(boxes, (drop,), length_mm=8000.0)
 
 
-def random_rider(seed: int, duration_s: float):
-    rng = np.random.default_rng(seed)
-    steps: list[tuple[str, float]] = []
-    t = 0.0
-    while t < duration_s:
-        cmd = str(
-            rng.choice(
-                ["forward", "left", "right", "neutral", "stop"], p=[0.45, 0.2, 0.2, 0.1, 0.05]
-            )
-        )
-        hold = float(rng.uniform(2.0, 10.0) if cmd == "forward" else rng.uniform(0.5, 3.0))
-        steps.append((cmd, hold))
-        t += hold + 0.3
-    return head_script(steps)
+def soak_settings() -> SimSettings:
+    """Configured daemon rates (control and perception periods from the core's config)."""
+    return SimSettings(
+        perception="truth",
+        physics_dt_s=0.02,
+        tilt_period_s=0.02,
+        record_period_s=0.2,
+        record_seen=False,
+        stop_on_contact=False,
+    )
 
 
 def _rss_mb() -> float:
@@ -56,34 +58,35 @@ def _rss_mb() -> float:
     return pages * 4096 / 2**20
 
 
-def test_soak_half_an_hour_of_random_riding(caplog):
+def test_soak_random_riding_at_the_configured_rates(caplog):
     caplog.set_level(logging.WARNING, logger="omnid.daemon")
-    settings = SimSettings(
-        perception="truth",
-        physics_dt_s=0.02,
-        control_period_s=0.1,
-        tilt_period_s=0.05,
-        record_period_s=0.2,
-        record_seen=False,
-        stop_on_contact=False,
-    )
     rss: list[tuple[float, float]] = []
 
     def sample(now_s: float, _sim: Simulator) -> None:
-        if int(now_s) % 60 == 0:
+        if int(now_s) % 20 == 0:
             rss.append((now_s, _rss_mb()))
 
+    core = make_core(joystick=True)
     sim = Simulator(
-        cluttered_room(), make_core(), settings, rider=random_rider(7, DURATION_S), progress=sample
+        cluttered_room(),
+        core,
+        soak_settings(),
+        joystick=random_ride(7, DURATION_S),
+        progress=sample,
     )
+    assert sim.settings.control_period_s == core.config.control.period_s  # type: ignore[attr-defined]
+    assert sim.settings.perception_period_s == core.config.perception.period_s  # type: ignore[attr-defined]
     result = sim.run(DURATION_S)
     assert result.collisions == [] and result.falls == []
-    # It rides some metres; with this seed the chair ends boxed in by refusals after ~3.6 m
-    # (reported to the safety-layer owner), so the soak mainly exercises standing refusals.
-    assert result.distance_mm > 2_000.0
-    # Memory: after the first 5 minutes (map, caches warm) RSS grows by less than 15 MB more.
-    warm = [m for t, m in rss if t >= 300.0]
-    assert warm[-1] - warm[0] < 15.0, rss
+    # The rider is not boxed in: turning in place and reversing out keep the chair going
+    # (measured 2.6 m and 2.8 rad of heading in 3 minutes with this seed: the safety layer refuses
+    # most moves near the first box, the rider turns and reverses until it gets away).
+    assert result.distance_mm > 2_000.0, result.distance_mm
+    # It turned and reversed, not only drove ahead.
+    assert np.ptp(result.trajectory[:, 3]) > 1.5
+    # Memory: after the first minute (map, caches warm) RSS grows by less than 10 MB.
+    warm = [m for t, m in rss if t >= 60.0]
+    assert warm[-1] - warm[0] < 10.0, rss
     # Every refusal carries its reasons, each one the safety layer's named code, and the core
     # logged each reason it refused for.
     known = {r.value for r in Reason}

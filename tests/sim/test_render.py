@@ -66,3 +66,20 @@ def test_flicker_leaves_a_faint_scene_in_the_difference():
     cap = render_capture(rig, np.zeros((0, 3)), opts, seed=2)
     diff = cap.base1.astype(float) - cap.mask1.astype(float)
     assert 4.0 < diff[200:280, 280:360].mean() < 10.0  # ≈ 0.1 · 70
+
+
+def test_sensor_noise_has_the_set_sigma_and_is_independent_per_frame_and_seed():
+    # Flat scene, no dots: what is left in the disk is the read noise (σ = 3 gray levels).
+    rig = StereoRig.nominal()
+    opts = RenderOptions(background_texture=0.0, noise_sigma=3.0)
+    a = render_capture(rig, np.zeros((0, 3)), opts, seed=7)
+    b = render_capture(rig, np.zeros((0, 3)), opts, seed=8)
+    inner = (slice(150, 330), slice(230, 410))
+    frames = [f[inner].astype(float) - 70.0 for f in (a.mask1, a.base1, a.mask2, b.mask1)]
+    for f in frames:
+        assert abs(f.std() - 3.0) < 0.1  # rounding to integers adds 1/12 to the variance
+        assert abs(f.mean()) < 0.1
+    # Mask and base, the two cameras, and two seeds do not share their noise.
+    for i in range(len(frames)):
+        for j in range(i + 1, len(frames)):
+            assert abs(np.corrcoef(frames[i].ravel(), frames[j].ravel())[0, 1]) < 0.02

@@ -236,14 +236,23 @@ def test_closed_loop_rider_drives_at_a_wall_and_the_daemon_stops_before_it():
     assert result.timings["bytes_link"] == 1.0
 
 
-def test_closed_loop_demo_course_no_collision_no_fall():
-    from omnid.sim.course import demo_rider
+@pytest.mark.xfail(
+    reason="on main the pipeline's phantom obstacle row across the wide gap stops the chair "
+    "before it (the matcher's phantom-obstacle fix is this test's acceptance)",
+    strict=False,
+)
+def test_demo_story_with_pipeline_perception():
+    """The demo as `omnid demo` runs it: wide passage passed, narrow refused, stop before the
+    stairs, turn towards box 3 (outside the laser's field) refused, nothing touched."""
+    from omnid.sim.course import demo_joystick
+    from omnid.sim.report import story_checks
+    from omnid.sim.scenario import make_core
+    from omnid.sim.simulator import SimSettings
 
-    core = _core()
-    result = Simulator(builtin_course(), core, rider=demo_rider()).run(62.0)
+    _core()
+    core = make_core(joystick=True)
+    settings = SimSettings(perception="pipeline")
+    result = Simulator(builtin_course(), core, settings, joystick=demo_joystick()).run(60.0)
     assert result.contacts == [] and result.min_clearance_mm > 50.0
-    reasons = " ".join(r for _, r in result.refusals)
-    assert "refused forward: dropoff_stop" in reasons  # the stairs (how the later ride ends
-    # depends on the core's margins, which its owner tunes)
-    assert result.trajectory[:, 1].max() > 2500.0  # went through the wide passage
-    assert result.trajectory[:, 1].max() + ChairSettings().footprint_front_mm < 3900.0
+    failed = [(what, ev) for what, ok, ev in story_checks(result) if not ok]
+    assert failed == []

@@ -1,0 +1,158 @@
+"""`omnid scene` → `omnid calibrate` → `omnid perceive` (--ply, --png, summary) and
+`omnid experiment table74`, all through the console entry ``omnid.cli.main``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from omnid.cli import main
+from omnid.core.export import parse_ply
+
+CAPTURE = ("mask1", "base1", "mask2", "base2")
+
+
+def capture_args(folder: Path, prefix: str = "") -> list[str]:
+    return [a for n in CAPTURE for a in (f"--{n}", str(folder / f"{prefix}{n}.png"))]
+
+
+def make_scene(folder: Path, name: str, *extra: str) -> Path:
+    """Render ``name`` into ``folder`` and calibrate on its floor capture; returns CALIB.yaml."""
+    assert main(["scene", name, "--out", str(folder), *extra]) == 0
+    calib = folder / "calib.yaml"
+    argv = ["calibrate", *capture_args(folder, "floor_"), "--floor-depth-mm", "1100"]
+    assert main([*argv, "--out", str(calib)]) == 0
+    return calib
+
+
+@pytest.fixture(scope="module")
+def boxes(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("three_boxes")
+    return folder, make_scene(folder, "three_boxes", "--misaligned", "--seed", "3")
+
+
+def test_scene_writes_captures_and_truth(boxes) -> None:
+    folder, _ = boxes
+    for prefix in ("", "floor_"):
+        for n in CAPTURE:
+            img = cv2.imread(str(folder / f"{prefix}{n}.png"), cv2.IMREAD_UNCHANGED)
+            assert img is not None and img.shape == (480, 640) and img.dtype == np.uint8
+    truth = json.loads((folder / "truth.json").read_text())
+    assert truth["scene"] == "three_boxes" and truth["misaligned"] is True
+    dots = truth["dots"]
+    assert truth["visible_both"] == sum(d["visible1"] and d["visible2"] for d in dots) > 300
+    boxes_seen = [d for d in dots if d["class"] == "obstacle" and d["visible1"] and d["visible2"]]
+    # the three boxes are 150, 250 and 100 mm high; their tops carry dots
+    assert {round(d["h"]) for d in boxes_seen} >= {100, 150, 250}
+    assert truth["rig"]["cam1"]["rotation_rad"] != 0.0
+
+
+def test_round_trip_json_ply_png(boxes, capsys: pytest.CaptureFixture[str]) -> None:
+    folder, calib = boxes
+    ply, png = folder / "cloud.ply", folder / "top.png"
+    capsys.readouterr()
+    argv = ["perceive", "--calib", str(calib), *capture_args(folder), "--json"]
+    assert main([*argv, "--ply", str(ply), "--png", str(png)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    truth = json.loads((folder / "truth.json").read_text())
+    pts = doc["points"]
+    assert doc["detector"] == "best"
+    assert len(pts) >= 0.95 * truth["visible_both"]
+    obstacles = [p for p in pts if p["class"] == "obstacle"]
+    h = np.array([p["h"] for p in obstacles])
+    assert np.all((h > 10.0) & (h < 260.0))  # box tops and sides, nothing above the boxes
+    for top in (100.0, 150.0, 250.0):  # each box top is seen at its height within 5 mm
+        assert np.sum(np.abs(h - top) < 5.0) >= 3
+    # the nearest box ahead within ±350 mm: the left box's near side, 600 mm ahead
+    assert doc["nearest_obstacle_mm"] == pytest.approx(600.0, abs=15.0)
+    assert doc["nearest_dropoff_mm"] is None
+    # the PLY holds the same points and classes
+    rec = parse_ply(ply.read_bytes())
+    assert len(rec) == len(pts)
+    assert np.allclose(rec["x"], [p["x"] for p in pts], atol=0.01)
+    assert int((rec["class"] == 1).sum()) == len(obstacles)
+    # the picture: a BGR image with obstacle-red and floor-green dots drawn over the map
+    img = cv2.imread(str(png), cv2.IMREAD_COLOR)
+    assert img is not None and img.ndim == 3 and img.shape[0] > 100
+    assert np.any(np.all(img == (40, 40, 230), axis=2))  # obstacle dot (BGR of 230, 40, 40)
+    assert np.any(np.all(img == (60, 200, 40), axis=2))  # floor dot
+    assert not list(folder.glob(".*.tmp"))  # atomic writes leave no temporaries
+
+
+def test_summary_for_a_person(boxes, capsys: pytest.CaptureFixture[str]) -> None:
+    folder, calib = boxes
+    capsys.readouterr()
+    assert main(["perceive", "--calib", str(calib), *capture_args(folder)]) == 0
+    out = capsys.readouterr().out
+    assert "obstacle" in out and "matched" in out
+    line = next(x for x in out.splitlines() if x.startswith("nearest obstacle"))
+    assert float(line.rsplit(":", 1)[1].split()[0]) == pytest.approx(600.0, abs=15.0)
+    assert "nearest drop-off ahead (within ±350 mm): none seen" in out
+
+
+def test_dropoff_is_reported_ahead(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    calib = make_scene(tmp_path, "dropoff")
+    capsys.readouterr()
+    assert main(["perceive", "--calib", str(calib), *capture_args(tmp_path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    # the floor ends 1000 mm ahead; lowered dots' rays cross floor level just beyond the edge
+    assert 1000.0 <= doc["nearest_dropoff_mm"] <= 1150.0
+    assert doc["counts"]["dropoff"] > 50
+
+
+def test_method_thesis_runs_the_thesis_detector(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--method thesis = the thesis' 8x8 detector (whole-pixel centres), matching and
+    triangulation; on an aligned rig its floor comes out at floor level."""
+    calib = make_scene(tmp_path, "horizontal_1100")
+    capsys.readouterr()
+    argv = ["perceive", "--calib", str(calib), *capture_args(tmp_path), "--json"]
+    assert main([*argv, "--method", "thesis"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["detector"] == "thesis" and doc["matched_fraction"] > 0.9
+    px = np.array([[p["r1"], p["c1"], p["r2"], p["c2"]] for p in doc["points"]])
+    assert len(px) > 300 and np.array_equal(px, np.rint(px))  # the 8x8 model's integer centres
+    h = np.array([p["h"] for p in doc["points"]])
+    assert np.median(np.abs(h)) < 30.0
+    # the best detector, when asked for, gives sub-pixel centres to the same matcher
+    assert main([*argv, "--method", "thesis", "--detect", "best"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    px = np.array([[p["r1"], p["c1"]] for p in doc["points"]])
+    assert doc["detector"] == "best" and not np.array_equal(px, np.rint(px))
+
+
+def test_unwritable_png_is_one_line(boxes, tmp_path: Path, capsys) -> None:
+    folder, calib = boxes
+    bad = tmp_path / "no" / "such" / "dir" / "top.png"
+    capsys.readouterr()
+    code = main(["perceive", "--calib", str(calib), *capture_args(folder), "--png", str(bad)])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and str(bad) in err and len(err.splitlines()) == 1
+    assert "Traceback" not in err
+
+
+def test_scene_list_and_unknown_name(tmp_path: Path, capsys) -> None:
+    assert main(["scene", "--list"]) == 0
+    out = capsys.readouterr().out
+    assert "three_boxes" in out and "vertical_1750" in out and "dropoff" in out
+    assert main(["scene", "no_such_scene", "--out", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "no_such_scene" in err and len(err.splitlines()) == 1
+    assert main(["scene", "three_boxes"]) != 0  # --out is needed
+    assert "--out" in capsys.readouterr().err
+
+
+def test_experiment_table74(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["experiment", "table74", "--planes", "vertical_1450"]) == 0
+    out = capsys.readouterr().out
+    assert "Misaligned rig" in out
+    assert "[2.17]" in out and "[51]" in out  # the thesis' own numbers beside ours
+    row = next(x for x in out.splitlines() if x.startswith("| vertical_1450 | best |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert float(cells[4].split()[0]) < 0.5  # mean X error of best on the plane, %
+    assert float(cells[7]) >= 95.0 and float(cells[8]) < 0.5  # matched %, wrong %
