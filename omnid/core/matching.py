@@ -77,6 +77,8 @@ class MatchSettings:
     double_dot_ratio: float = 1.35  # best: brighter than this × median = two merged dots
     anchor_margin_px: float = 5.0  # best: a row end is the lattice end when one more dot
     # would lie this far inside the mirror disk
+    dropoff_min_mm: float = 20.0  # best: a pair read this far under the floor needs a
+    # neighbour (next ray of its row or same ray of the next row) at the same depth
     phantom_margin_mm: float = 100.0  # best: a dot read this much nearer than a lower row's
     # dot of the same laser column, at the floor's shifted depth, is refused
     # best: a step along a row counts as one ray when within this × lattice step; None: from
@@ -92,6 +94,7 @@ class MatchSettings:
         require(0 < self.lattice_tol < 0.5, "lattice_tol", "must be in (0, 0.5)")
         require(self.anchor_margin_px >= 0, "anchor_margin_px", "must not be negative")
         require(self.walk_tol is None or 0 < self.walk_tol < 0.5, "walk_tol", "must be in (0, 0.5)")
+        require(self.dropoff_min_mm > 0, "dropoff_min_mm", "must be positive")
         require(self.phantom_margin_mm > 0, "phantom_margin_mm", "must be positive")
         require(self.thesis_search_px > 0, "thesis_search_px", "must be positive")
         require(self.thesis_max_n is None or self.thesis_max_n >= 0, "thesis_max_n", "must be >= 0")
@@ -416,7 +419,49 @@ def _match_best(
         # end), so the floor reading is looked for among all candidates, labels ignored
         keep_h = _unambiguous(l1, p1[:, 1], p2[:, 1], i0, j0, ci, cj, suspect, sb, (-2.0,), D / H)
         ci, cj = ci[keep_h], cj[keep_h]
-    return ci, cj
+    keep_d = _dropoff_supported(p1[ci], p2[cj], lat, D, H + s.dropoff_min_mm)
+    return ci[keep_d], cj[keep_d]
+
+
+def _dropoff_supported(
+    q1: NDArray[np.float64],
+    q2: NDArray[np.float64],
+    lat: LaserLattice,
+    D: float,
+    below_mm: float,
+) -> NDArray[np.bool_]:
+    """Which pairs to keep: a pair read deeper than ``below_mm`` (under the floor) needs a
+    neighbour that agrees.
+
+    ``q1``, ``q2`` are the ray slopes (X/Z, Y/Z) of each pair's dots. A real drop-off is a
+    surface: the next ray of its laser row or the same ray of the next row lands on it too, at
+    a disparity within 0.3 lattice steps. A lone pair under the floor is a dot whose true
+    partner is hidden, paired with the image of a nearer dot that lies just beside where the
+    partner would be (at the edge of an occluder): a phantom drop-off (a false stop), so it
+    is left unmatched.
+    """
+    keep = np.ones(len(q1), dtype=bool)
+    if len(q1) == 0:
+        return keep
+    disp = q1[:, 1] - q2[:, 1]  # D/Z
+    deep = disp < D / below_mm
+    if not deep.any():
+        return keep
+    row = np.rint((q1[:, 0] - lat.a0) / lat.step_a).astype(np.int64)
+    col = np.rint((0.5 * (q1[:, 1] + q2[:, 1]) - lat.b0) / lat.step_b).astype(np.int64)
+    width = int(col.max() - col.min()) + 3
+    key = (row - row.min() + 1) * width + (col - col.min() + 1)
+    order = np.argsort(key, kind="stable")
+    skey, sdisp = key[order], disp[order]
+    supported = np.zeros(len(q1), dtype=bool)
+    for off in (-1, 1, -width, width):
+        q = key + off
+        pos = np.clip(np.searchsorted(skey, q), 0, len(skey) - 1)
+        hit = (skey[pos] == q) & (np.abs(sdisp[pos] - disp) < 0.3 * lat.step_b)
+        hit &= sdisp[pos] < D / below_mm
+        supported |= hit
+    keep[deep & ~supported] = False
+    return keep
 
 
 def _floor_phantom_suspects(
@@ -497,7 +542,10 @@ def _unambiguous(
     r_o, d_o, f_o = row1[ci][order], disp_c[order], free[order]
     brk = np.ones(len(order), dtype=bool)
     brk[1:] = (r_o[1:] != r_o[:-1]) | (np.abs(d_o[1:] - d_o[:-1]) > 0.5 * sb)
-    brk[1:] |= f_o[1:] != f_o[:-1]
+    # a free pair frees its whole stretch of continuous disparity: the pairs at the ends of a
+    # row read one step off are no surer than the middle (their neighbours beyond are hidden)
+    seg = np.cumsum(brk) - 1
+    f_o = np.bincount(seg, weights=f_o.astype(np.float64))[seg] > 0
     run_id = np.cumsum(brk) - 1
     cand_row = row1[cand_i]
     for rid in np.unique(run_id[f_o]):
@@ -582,8 +630,22 @@ def _anchor_labels(
         xyz = np.column_stack([a[idx], e[idx] + direction * sb + cam.y_mm, np.ones(len(idx))])
         return cam.in_disk(cam.project(xyz), margin_px=s.anchor_margin_px)
 
-    has_l = beyond_inside(first, -1.0)[g]
-    has_r = beyond_inside(last, +1.0)[g]
+    # A neighbouring row with a dot one step beyond this row's end (±0.3 step: about the same
+    # depth) shows the lattice going on there: this row's next dot is hidden, not missing.
+    e0, span = e.min() - 2.0 * sb, e.max() - e.min() + 4.0 * sb
+    key = L * 2.0 + (e - e0) / span  # ascending, like the dots: by row, then column slope
+
+    def hidden_beyond(idx: NDArray[np.intp], direction: float) -> NDArray[np.bool_]:
+        hit = np.zeros(len(idx), dtype=bool)
+        for dr in (-1, 1):
+            at = e[idx] + direction * sb - e0
+            lo = (L[idx] + dr) * 2.0 + (at - 0.3 * sb) / span
+            hi = (L[idx] + dr) * 2.0 + (at + 0.3 * sb) / span
+            hit |= np.searchsorted(key, hi, side="right") > np.searchsorted(key, lo, side="left")
+        return hit
+
+    has_l = (beyond_inside(first, -1.0) & ~hidden_beyond(first, -1.0))[g]
+    has_r = (beyond_inside(last, +1.0) & ~hidden_beyond(last, +1.0))[g]
     k_l = lat.cols[0] + (csum - csum[first][g])
     ok_l = has_l & (bcum - bcum[first][g] == 0)
     k_r = lat.cols[1] - (csum[last][g] - csum)
