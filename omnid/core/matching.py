@@ -542,10 +542,14 @@ def _unambiguous(
     r_o, d_o, f_o = row1[ci][order], disp_c[order], free[order]
     brk = np.ones(len(order), dtype=bool)
     brk[1:] = (r_o[1:] != r_o[:-1]) | (np.abs(d_o[1:] - d_o[:-1]) > 0.5 * sb)
-    # a free pair frees its whole stretch of continuous disparity: the pairs at the ends of a
-    # row read one step off are no surer than the middle (their neighbours beyond are hidden)
-    seg = np.cumsum(brk) - 1
-    f_o = np.bincount(seg, weights=f_o.astype(np.float64))[seg] > 0
+    if floor_disp is not None:
+        # a suspect frees the pairs of its stretch of continuous disparity that lie at the
+        # floor's shifted depth too: the ends of a row read one step off are no surer than its
+        # middle (their neighbours beyond are hidden), but a real surface beside it stays
+        seg = np.cumsum(brk) - 1
+        band = np.abs(d_o - floor_disp - 2.0 * sb) < 0.3 * sb
+        f_o = f_o | (band & (np.bincount(seg, weights=f_o.astype(np.float64))[seg] > 0))
+    brk[1:] |= f_o[1:] != f_o[:-1]
     run_id = np.cumsum(brk) - 1
     cand_row = row1[cand_i]
     for rid in np.unique(run_id[f_o]):
