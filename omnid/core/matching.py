@@ -552,6 +552,8 @@ def _unambiguous(
     brk[1:] |= f_o[1:] != f_o[:-1]
     run_id = np.cumsum(brk) - 1
     cand_row = row1[cand_i]
+    # a suspect run's shifted reading may lose a dot at each end to the pairs beside it
+    slack_ends = 1 if floor_disp is not None else 0
     for rid in np.unique(run_id[f_o]):
         at = np.flatnonzero(run_id == rid)
         members = order[at]
@@ -580,7 +582,7 @@ def _unambiguous(
             if not alt.any():
                 continue
             n_alt = min(len(np.unique(ni[alt])), len(np.unique(nj[alt])))
-            if n_alt >= len(ri):
+            if n_alt >= len(ri) - slack_ends:
                 keep[members] = False
                 break
     return keep
