@@ -77,8 +77,9 @@ class MatchSettings:
     double_dot_ratio: float = 1.35  # best: brighter than this × median = two merged dots
     anchor_margin_px: float = 5.0  # best: a row end is the lattice end when one more dot
     # would lie this far inside the mirror disk
-    dropoff_min_mm: float = 20.0  # best: a pair read this far under the floor needs a
-    # neighbour (next ray of its row or same ray of the next row) at the same depth
+    dropoff_min_mm: float = 20.0  # best: a pair read this far under the floor (and 5 σ of
+    # the disparity scatter) needs a neighbour (next ray of its row or same ray of the next
+    # row) at the same depth
     phantom_margin_mm: float = 100.0  # best: a dot read this much nearer than a lower row's
     # dot of the same laser column, at the floor's shifted depth, is refused
     # best: a step along a row counts as one ray when within this × lattice step; None: from
@@ -327,10 +328,10 @@ def _match_best(
     mult1 = _multiplicity(d1[:, 2], s.double_dot_ratio)
     mult2 = _multiplicity(d2[:, 2], s.double_dot_ratio)
     walk_tol = s.walk_tol
+    sigma_px = float(calib.residuals.get("row_rms_px", 0.1)) if calib.residuals else 0.1
     if walk_tol is None:
         # a depth jump across a hidden ray can mimic one step to within a few hundredths, so
         # the walk is as strict as the dots' own scatter allows (0.1 px when unknown)
-        sigma_px = float(calib.residuals.get("row_rms_px", 0.1)) if calib.residuals else 0.1
         walk_tol = min(0.25, max(0.05, 5.0 * math.sqrt(2.0) * sigma_px / (f * sb)))
     k1 = _anchor_labels(rig.cam1, p1, l1, on1, lat, s, mult1 > 1, walk_tol)
     k2 = _anchor_labels(rig.cam2, p2, l2, on2, lat, s, mult2 > 1, walk_tol)
@@ -419,7 +420,9 @@ def _match_best(
         # end), so the floor reading is looked for among all candidates, labels ignored
         keep_h = _unambiguous(l1, p1[:, 1], p2[:, 1], i0, j0, ci, cj, suspect, sb, (-2.0,), D / H)
         ci, cj = ci[keep_h], cj[keep_h]
-    keep_d = _dropoff_supported(p1[ci], p2[cj], lat, D, H + s.dropoff_min_mm)
+    # under the floor: deeper than dropoff_min_mm and than 5 σ of the disparity's scatter
+    under = max(D / H - D / (H + s.dropoff_min_mm), 5.0 * math.sqrt(2.0) * sigma_px / f)
+    keep_d = _dropoff_supported(p1[ci], p2[cj], lat, D / H - under)
     return ci[keep_d], cj[keep_d]
 
 
@@ -427,11 +430,10 @@ def _dropoff_supported(
     q1: NDArray[np.float64],
     q2: NDArray[np.float64],
     lat: LaserLattice,
-    D: float,
-    below_mm: float,
+    under_disp: float,
 ) -> NDArray[np.bool_]:
-    """Which pairs to keep: a pair read deeper than ``below_mm`` (under the floor) needs a
-    neighbour that agrees.
+    """Which pairs to keep: a pair read under the floor (disparity D/Z below ``under_disp``)
+    needs a neighbour that agrees.
 
     ``q1``, ``q2`` are the ray slopes (X/Z, Y/Z) of each pair's dots. A real drop-off is a
     surface: the next ray of its laser row or the same ray of the next row lands on it too, at
@@ -444,7 +446,7 @@ def _dropoff_supported(
     if len(q1) == 0:
         return keep
     disp = q1[:, 1] - q2[:, 1]  # D/Z
-    deep = disp < D / below_mm
+    deep = disp < under_disp
     if not deep.any():
         return keep
     row = np.rint((q1[:, 0] - lat.a0) / lat.step_a).astype(np.int64)
@@ -458,7 +460,7 @@ def _dropoff_supported(
         q = key + off
         pos = np.clip(np.searchsorted(skey, q), 0, len(skey) - 1)
         hit = (skey[pos] == q) & (np.abs(sdisp[pos] - disp) < 0.3 * lat.step_b)
-        hit &= sdisp[pos] < D / below_mm
+        hit &= sdisp[pos] < under_disp
         supported |= hit
     keep[deep & ~supported] = False
     return keep
