@@ -26,6 +26,8 @@ them. An empty input gives an empty (0, 4) result.
     * the laser lattice — the mean lateral slope (e1 + e2)/2 = Y/Z of a true pair is the slope
       of a laser ray (the source sits midway between the mirrors), so a pairing shifted by one
       lattice step falls between rays and is rejected;
+    * no phantom drop-off — a pair read under the floor needs a neighbour at its depth (a dot
+      whose partner is hidden pairs with a nearer dot's image beside it, at an occluder's edge);
     * the remaining ambiguity — a pairing shifted by two lattice steps describes another flat
       surface at a wrong depth (SPEC §2). Along each laser row the assignment is a chain
       ordered by laser ray, camera-1 column and camera-2 column (the order of dots along a
@@ -604,7 +606,11 @@ def _anchor_labels(
 
     Where one ray step beyond a row's outermost dot still lies well inside the mirror disk, a dot
     there would have been seen, so the outermost dot is the end of the laser lattice (ray
-    ``cols[0]`` on the left, ``cols[1]`` on the right). Counting lattice steps inward along the
+    ``cols[0]`` on the left, ``cols[1]`` on the right) — unless it is hidden: an occluder's edge
+    (a partition beside a gap) can hide the end ray from one camera only, and then a
+    neighbouring row shows a dot one step beyond (the lattice goes on there at about the same
+    depth); such an end is no anchor (taking it was a whole row one ray off in that camera,
+    and with the other camera's end hidden the other way, a row read two steps off: SPEC §2). Counting lattice steps inward along the
     row (while the spacing stays a whole number of steps, i.e. the depth does not jump) gives
     the ray of each dot. Rows whose two ends disagree get no labels.
     """
