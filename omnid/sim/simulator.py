@@ -193,6 +193,19 @@ class SimResult:
     # (N, 3) t_s, left, right wheel surface speed mm/s, every physics tick
     faults: tuple[Fault, ...] = ()
     perception_errors: list[tuple[float, str]] = field(default_factory=list)
+    steps: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 7)))
+    # (M, 7) every control step: t_s, reason bit mask (bit i = reason_names[i]), x_mm, y_mm,
+    # theta_rad (true pose), mean wheel surface speed mm/s (true), rider's forward demand [-1, 1]
+    reason_names: tuple[str, ...] = ()
+
+    def reasons_at(self, i: int) -> list[str]:
+        """The reasons the controller gave at control step ``i`` (row of :attr:`steps`)."""
+        mask = int(self.steps[i, 1])
+        return [n for b, n in enumerate(self.reason_names) if mask >> b & 1]
+
+    def reason_mask(self, *names: str) -> int:
+        """The bit mask of ``names`` in :attr:`steps` (0 for a reason that never occurred)."""
+        return sum(1 << b for b, n in enumerate(self.reason_names) if n in names)
 
     def time_to_standstill(self, t0_s: float, speed_tol_mm_s: float = 1.0) -> float:
         """Seconds from ``t0_s`` until both wheels turn slower than ``speed_tol_mm_s`` (and stay
@@ -834,6 +847,8 @@ class Simulator:
         traj = np.empty((n_ticks // k_rec + 2, 4))
         speeds = np.empty((n_ticks + 1, 3))
         cmds = np.empty((n_ticks // k_ctrl + 1, 5))
+        steps = np.empty((n_ticks // k_ctrl + 1, 7))
+        reason_bits: dict[str, int] = {}
         n_traj = n_speed = n_cmd = 0
         contacts: list[tuple[float, Contact]] = []
         seen: list[NDArray[np.float64]] = []
@@ -904,6 +919,12 @@ class Simulator:
                 ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
                 ctrl_max = max(ctrl_max, took_ctrl)
                 last_refusal = self._note_decision(now, refusals, last_refusal)
+                steps[n_cmd] = (
+                    now,
+                    self._reason_mask(reason_bits),
+                    *self.chair.pose,
+                    *self._speed(),
+                )
                 status = self.control_unit.exchange(command, now)
                 if status is not None:
                     self._last_status = status
@@ -975,7 +996,29 @@ class Simulator:
             wheel_speeds=speeds[:n_speed].copy(),
             faults=self.faults,
             perception_errors=errors,
+            steps=steps[:n_cmd].copy(),
+            reason_names=tuple(sorted(reason_bits, key=reason_bits.__getitem__)),
         )
+
+    def _reason_mask(self, bits: dict[str, int]) -> float:
+        """The controller's reasons of its last cycle as a bit mask; new names get new bits."""
+        report = getattr(self.controller, "last_report", None)
+        mask = 0
+        for r in getattr(report, "reasons", ()) if report is not None else ():
+            name = str(getattr(r, "value", r))
+            if name not in bits:
+                require(len(bits) < 52, "reasons", "more than 52 distinct reasons")
+                bits[name] = len(bits)
+            mask |= 1 << bits[name]
+        return float(mask)
+
+    def _speed(self) -> tuple[float, float]:
+        """Mean wheel surface speed (mm/s, true) and the rider's forward demand now."""
+        c = self.chair
+        report = getattr(self.controller, "last_report", None)
+        demand = getattr(report, "demand", None)
+        fwd = float(getattr(demand, "forward", 0.0)) if demand is not None else 0.0
+        return 0.5 * (c.left_speed_mm_s + c.right_speed_mm_s), fwd
 
     def _perception_cycle(
         self,
