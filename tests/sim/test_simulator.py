@@ -256,3 +256,26 @@ def test_demo_story_with_pipeline_perception():
     assert result.contacts == [] and result.min_clearance_mm > 50.0
     failed = [(what, ev) for what, ok, ev in story_checks(result) if not ok]
     assert failed == []
+
+
+def test_every_control_step_records_the_cores_reasons():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+    from safety_figures import room  # type: ignore[import-not-found]
+
+    from omnid.sim.rider import JoystickScript
+    from omnid.sim.scenario import make_core
+
+    core = make_core(joystick=True)
+    stick = JoystickScript(((0.2, 1.0, 0.0),))
+    course = room(1200.0)  # front wall 850 mm ahead of the footrests: inside the slow zone soon
+    r = Simulator(course, core, SimSettings(perception="truth"), joystick=stick).run(4.0)
+    assert r.steps.shape == (201, 7)  # 50 Hz for 4 s, both ends
+    assert np.all(np.diff(r.steps[:, 0]) > 0)
+    limited = r.steps[:, 1].astype(int) & r.reason_mask("slow_zone", "approach", "obstacle_stop")
+    assert np.any(limited)  # limits are recorded, not only refusals
+    i = int(np.flatnonzero(limited)[0])
+    assert set(r.reasons_at(i)) & {"slow_zone", "approach", "obstacle_stop"}
+    assert r.contacts == []
