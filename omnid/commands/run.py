@@ -18,6 +18,11 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--check", action="store_true", help="only validate the configuration and exit"
     )
+    parser.add_argument(
+        "--stats-out",
+        metavar="JSON",
+        help="at exit, write the control-loop and perception timings here (benchmarks)",
+    )
     parser.set_defaults(func=handle)
 
 
@@ -30,4 +35,4 @@ def handle(args: argparse.Namespace) -> int:
         return 0
     from omnid.daemon.run import main
 
-    return main(args.config)
+    return main(args.config, stats_out=args.stats_out)

@@ -20,7 +20,9 @@ from omnid.daemon.rider import RiderSettings
 from omnid.daemon.safety import SafetySettings
 from omnid.devices.camera import CameraSettings
 from omnid.devices.control_unit import ControlUnitSettings
+from omnid.devices.joystick import JoystickSettings as JoystickDeviceSettings
 from omnid.devices.teleop import TeleopSettings
+from omnid.devices.tilt import TiltSettings as TiltSensorSettings
 from omnid.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -34,6 +36,10 @@ class ControlSettings:
     status_timeout_s: float = 0.25  # no control-unit status this long → stop
     max_dt_s: float = 0.1  # a longer gap between cycles is treated as this (no ramp jumps)
     pose_history_s: float = 5.0  # odometry kept to compensate late perception results
+    # after a control-unit fault or a cycle exception, motion waits until the rider's command
+    # has been released once (the shipped etc/omnid.yaml: true). The default false keeps
+    # clock-injected users (simulator scenarios) resuming with a held command
+    rearm_after_fault: bool = False
 
     def __post_init__(self) -> None:
         require(1.0 <= self.rate_hz <= 500.0, "rate_hz", "must be in [1, 500]")
@@ -57,27 +63,22 @@ class PerceptionSettings:
     laser_timeout_s: float = 0.5  # wait this long for the control unit to report the laser
     flush_frames: bool = True  # drop frames queued before the laser switched
     capture_policy: Literal["limit", "compensate"] = "limit"
-    capture_speed_mm_s: float = 80.0  # speed cap while mask/base frames are taken ("limit")
+    # speed cap while mask/base frames are taken ("limit"); measured harmless up to 240 mm/s
+    # on tiled floors (tools/eval_capture_motion.py, docs/daemon.md): a margin for sharper,
+    # specular floor texture than modelled
+    capture_speed_mm_s: float = 80.0
     rig_x_offset_mm: float = 300.0  # rig origin ahead of the axle midpoint
     frame_timeout_s: float = 1.0
+    worker_timeout_s: float = 1.0  # a perceive call longer than this: worker killed, restarted
+    worker_nice: int = 10  # the worker process yields the CPU to the control loop (0 = as is)
 
     def __post_init__(self) -> None:
         require(self.period_s > 0, "period_s", "must be positive")
+        require(self.worker_timeout_s > 0, "worker_timeout_s", "must be positive")
+        require(0 <= self.worker_nice <= 19, "worker_nice", "must be in [0, 19]")
         require(self.laser_timeout_s > 0, "laser_timeout_s", "must be positive")
         require(self.capture_speed_mm_s >= 0, "capture_speed_mm_s", "must not be negative")
         require(self.frame_timeout_s > 0, "frame_timeout_s", "must be positive")
-
-
-@dataclass(frozen=True)
-class InputDeviceSettings:
-    """Rider input devices whose links are chosen by URL (tilt sensor, joystick)."""
-
-    tilt_url: str = "/dev/omnid-tilt"  # GS311 USB serial (udev symlink); "" = none
-    tilt_baud: int = 115200
-    joystick_url: str = ""  # "" = none; e.g. "hid://VID:PID" or "evdev:///dev/input/event3"
-
-    def __post_init__(self) -> None:
-        require(self.tilt_baud > 0, "tilt_baud", "must be positive")
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,12 @@ class OmnidConfig:
     control_unit: ControlUnitSettings = field(default_factory=ControlUnitSettings)
     camera: CameraSettings = field(default_factory=CameraSettings)
     teleop: TeleopSettings = field(default_factory=TeleopSettings)
-    inputs: InputDeviceSettings = field(default_factory=InputDeviceSettings)
+    tilt_sensor: TiltSensorSettings = field(
+        default_factory=lambda: TiltSensorSettings(port="/dev/omnid-tilt")
+    )  # the GS311 link (used when rider.tilt.enabled)
+    joystick_device: JoystickDeviceSettings = field(
+        default_factory=JoystickDeviceSettings
+    )  # the joystick link (used when rider.joystick.enabled)
     service: ServiceSettings = field(default_factory=ServiceSettings)
 
 

@@ -9,7 +9,14 @@ ends in zero wheel velocity, logged with its reason:
   ``enable=False`` (without feedback nothing can be regulated; the control unit brakes);
 - a control-unit fault flag → likewise;
 - perception missing or stale → no forward motion (:mod:`omnid.daemon.safety`);
+- the control-unit port is gone (``link_ok`` False, set by the daemon from the link's health)
+  → likewise, at once rather than after ``status_timeout_s``;
 - an exception inside a cycle → duty 0, ``enable=False``, controllers reset.
+
+With ``control.rearm_after_fault`` (on in the shipped etc/omnid.yaml), after a control-unit
+fault or an exception the chair does not resume by itself when the link comes back: motion
+stays refused (``rearm``) until the rider's demand has been idle or stop once, so a command the
+rider held through the fault does not restart the wheels unannounced.
 
 Perception results arrive late (they are computed in a worker thread while the chair moves):
 the cloud is moved into the current robot frame by the odometry between its capture time and
@@ -128,6 +135,8 @@ class ControlCore:
         self._poses: deque[tuple[float, float, float, float]] = deque()
         self._log = ReasonLog(log, config.safety.log_interval_s)
         self.fault_count = 0
+        self.link_ok = True  # the daemon clears it while the control-unit link is unhealthy
+        self.rearm_after: str | None = None  # a fault stopped the chair: wait for a release
 
     @property
     def grid(self) -> OccupancyGrid:
@@ -210,6 +219,7 @@ class ControlCore:
             )
             log.debug("cycle exception", exc_info=True)
             self.motion.reset()
+            self.rearm_after = "cycle_exception"
             cmd = WheelCommand(0.0, 0.0, laser_on=self.laser_on, enable=False)
             self.last_report = CycleReport(
                 now_s, RiderDemand(reason="fault"), None, cmd, (Reason.FAULT,)
@@ -225,10 +235,17 @@ class ControlCore:
         if self.halt:
             demand = RiderDemand(stop=True, source="daemon", reason="shutdown_stale")
         st = self.status
-        if st is None or now_s - st.timestamp_s > cfg.control.status_timeout_s or st.faults:
+        if (
+            st is None
+            or not self.link_ok
+            or now_s - st.timestamp_s > cfg.control.status_timeout_s
+            or st.faults
+        ):
             reason = "status_stale" if st is None or not st.faults else "control_unit_fault"
             code = Reason.STATUS_STALE if reason == "status_stale" else Reason.FAULT
             self._log.log(reason, "no valid control-unit status; wheels stopped", now_s)
+            if st is not None:  # start-up (no status yet) needs no re-arming
+                self.rearm_after = reason
             self.motion.reset()
             if st is None:
                 self.odometry.reset()
@@ -238,6 +255,21 @@ class ControlCore:
         reasons: list[Reason] = []
         m = cfg.motion
         emergency = False
+        if self.rearm_after is not None and not cfg.control.rearm_after_fault:
+            self.rearm_after = None
+        if self.rearm_after is not None:
+            if demand.moving:
+                self._log.log(
+                    "rearm",
+                    f"motion refused until the rider releases the command (after "
+                    f"{self.rearm_after})",
+                    now_s,
+                )
+                demand = RiderDemand(stop=True, source=demand.source, reason="rearm_wait")
+                reasons.append(Reason.FAULT)
+            else:
+                log.info("rider released after %s: motion allowed again", self.rearm_after)
+                self.rearm_after = None
         if demand.stop:
             v_req = w_req = 0.0
             if demand.reason.endswith(("_stale", "_invalid")):  # silence, bad input, shutdown

@@ -4,20 +4,29 @@ Tasks:
 
 - control loop at ``control.rate_hz`` on the monotonic clock, drift-free: deadlines are
   ``t0 + k·period``; a late cycle runs at once and a cycle more than one period late is skipped
-  (counted), never bunched. Each cycle: ``core.step(now)`` → ``ControlUnitLink.set_command``.
-  The link's own task sends the latest command every ``control_unit.command_period_s``; its
-  replies arrive through ``core.on_status``.
-- perception cycle (``perception.enabled``): laser off → wait until the control unit reports it
-  off → flush stale frames → mask pair → laser on → wait until reported on → flush → base pair →
-  ``perceive`` in a worker thread (``asyncio.to_thread``) so the control loop never waits →
-  ``core.on_perception(cloud, t_base)``. While frames are taken, ``core.capturing`` caps the speed
-  (``perception.capture_policy: limit``); the result is placed by odometry in any case.
-- rider inputs: teleop keyboard socket; tilt sensor and joystick links when available. A source
-  configured but absent stays silent, which the rider mux turns into a stop.
+  (counted), never bunched. Each cycle: joystick poll → ``core.step(now)`` →
+  ``ControlUnitLink.set_command``. The link's own task sends the latest command every
+  ``control_unit.command_period_s``; its replies arrive through ``core.on_status``. The core
+  stops the chair when no status came for ``control.status_timeout_s``, and at once when the
+  port is gone (``core.link_ok``).
+- perception cycle (``perception.enabled``): laser off → wait until the control unit *reports*
+  it off → flush stale frames → mask pair → laser on → wait until reported on → flush → base
+  pair → ``perceive`` in a separate **worker process** (:mod:`omnid.daemon.perception_worker`:
+  no GIL shared with the control loop; exceptions, crashes and hangs cost one cycle and restart
+  the worker) → ``core.on_perception(cloud, t_base)``. While frames are taken ``core.capturing``
+  caps the speed (``perception.capture_policy: limit``); the cloud is placed by odometry anyway.
+  A missing or invalid calibration file refuses the start (one line naming the file); with
+  ``perception.enabled: false`` the daemon runs and refuses forward motion (no free space seen).
+- rider inputs: teleop keyboard socket; GS311 tilt sensor (:class:`TiltSensorLink`, readings
+  pushed into the core; neutral pose per ``rider.tilt.neutral_calibration_s``); joystick
+  (:class:`JoystickLink`, polled each cycle; opened again every second while absent at start,
+  after that the link reopens it itself). A source
+  enabled but silent is a stop (rider mux).
 - systemd: READY=1 once the links run, WATCHDOG=1 from the control loop (so a hung loop is
   restarted), STATUS= once per ``service.status_period_s``.
 - signals: SIGTERM/SIGINT → stop at the emergency rate, send stop commands, close, exit 0;
-  SIGHUP → reload the configuration (an invalid file is refused, the old one stays).
+  SIGHUP → reload the configuration (an invalid file is refused, the old one stays; device
+  and perception settings apply at the next start).
 """
 
 from __future__ import annotations
@@ -42,19 +51,53 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class LoopStats:
-    """Timing of the control loop (s) for STATUS= and the benchmark."""
+    """Timing of the control loop and the perception cycle (s), for STATUS= and the benchmark."""
 
     cycles: int = 0
     skipped: int = 0
     lateness_s: list[float] = field(default_factory=list)
     perception_cycles: int = 0
     perception_errors: int = 0
-    perception_s: list[float] = field(default_factory=list)
+    perception_s: list[float] = field(default_factory=list)  # perceive in the worker, wall
+    perception_latency_s: list[float] = field(default_factory=list)  # base frame → in the map
+    capture_s: list[float] = field(default_factory=list)  # laser off → base pair in hand
+    mask_to_base_s: list[float] = field(default_factory=list)  # mask pair → base pair
 
     def record(self, late_s: float) -> None:
         self.cycles += 1
         if len(self.lateness_s) < 200_000:
             self.lateness_s.append(late_s)
+
+    def note(self, series: list[float], value_s: float) -> None:
+        if len(series) < 100_000:
+            series.append(value_s)
+
+
+def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
+    """Capture time of a frame pair on this process's monotonic clock.
+
+    V4L2 sources stamp pairs with ``time.monotonic()`` at the grab (inside the read); the
+    simulator's frame server stamps its own virtual clock, which is not ours. A stamp outside
+    the read's own window is therefore replaced by the window's midpoint.
+    """
+    if t_req_s - 0.2 <= t_cam_s <= t_got_s + 0.01:
+        return t_cam_s
+    return 0.5 * (t_req_s + t_got_s)
+
+
+def load_calibration(config: OmnidConfig) -> Any:
+    """The calibration for the perception cycle; ConfigError naming the file if it is missing
+    or invalid (the daemon refuses to start rather than drive blind)."""
+    from omnid.core.calibration import Calibration
+    from omnid.errors import ConfigError
+
+    path = Path(config.perception.calibration_path)
+    if not path.is_file():
+        raise ConfigError(
+            f"perception.calibration_path: {path} does not exist (write it with `omnid "
+            f"calibrate`, or set perception.enabled: false to run without forward motion)"
+        )
+    return Calibration.load(path)
 
 
 class Daemon:
@@ -66,10 +109,20 @@ class Daemon:
         self.core = ControlCore(holder.config)
         self.link = ControlUnitLink(holder.config.control_unit, on_status=self._on_status)
         self.stats = LoopStats()
+        self.calibration = (
+            load_calibration(holder.config) if holder.config.perception.enabled else None
+        )
+        self.tilt: Any = None
+        self.joystick: Any = None
+        self.worker: Any = None
         self._stop = asyncio.Event()
+        self._wake = asyncio.Event()  # set by a stop request or a rider's new command
+        self._kicked = False  # a rider's new command: run a cycle now, send it at once
+        self._last_kick_s = 0.0
         self._closers: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._last_cycle_s = time.monotonic()
+        self._link_was_ok = True
 
     @property
     def config(self) -> OmnidConfig:
@@ -79,6 +132,18 @@ class Daemon:
     def _on_status(self, status: Any) -> None:
         self.core.on_status(status)
 
+    def _on_tilt(self, reading: Any) -> None:
+        before = self.core.mux.tilt.active
+        self.core.on_tilt(reading)
+        if self.core.mux.tilt.active is not before:
+            self._kick()
+
+    def _kick(self) -> None:
+        """A rider's command changed: the control loop runs an extra cycle at once and the link
+        sends its result at once (rider → wire need not wait for two 20 ms grids)."""
+        self._kicked = True
+        self._wake.set()
+
     async def _start_inputs(self) -> None:
         cfg = self.config
         if cfg.rider.keyboard.enabled:
@@ -86,45 +151,70 @@ class Daemon:
 
             def on_key(cmd: Any) -> None:
                 self.core.on_key(cmd.command, cmd.timestamp_s)
+                self._kick()
 
             server = TeleopServer(cfg.teleop, on_command=on_key)
             Path(cfg.teleop.socket_path).parent.mkdir(parents=True, exist_ok=True)
             await server.start()
             self._closers.append(server.stop)
-        if cfg.rider.tilt.enabled and cfg.inputs.tilt_url:
-            await self._start_optional_link("tilt", "TiltSensorLink", self.core.on_tilt)
-        if cfg.rider.joystick.enabled and cfg.inputs.joystick_url:
-            await self._start_optional_link("joystick", "JoystickLink", self.core.on_joystick)
+        if cfg.rider.tilt.enabled:
+            from omnid.devices.tilt import TiltSensorLink
 
-    async def _start_optional_link(self, module: str, cls_name: str, callback: Any) -> None:
-        """Start a rider-input link if its driver is installed; if not, that source stays
-        silent and the rider mux keeps the chair stopped (logged)."""
-        try:
-            mod = __import__(f"omnid.devices.{module}", fromlist=[cls_name])
-            cls = getattr(mod, cls_name)
-        except (ImportError, AttributeError) as exc:
-            log.error(
-                "%s input configured but its driver is unavailable (%s): chair stays "
-                "stopped while %s is enabled",
-                module,
-                exc,
-                module,
-            )
-            return
-        try:
-            link = cls.from_url(
-                self.config.inputs.tilt_url
-                if module == "tilt"
-                else self.config.inputs.joystick_url,
-                on_reading=callback,
-            )
-            await link.start()
-        except Exception as exc:
-            log.error("%s input failed to start (%s): chair stays stopped", module, exc)
-            return
-        self._closers.append(link.stop)
+            self.tilt = TiltSensorLink(cfg.tilt_sensor, on_reading=self._on_tilt)
+            await self.tilt.start()  # opens (and re-opens after an unplug) in the background
+            self._closers.append(self.tilt.stop)
+            if cfg.rider.tilt.neutral_calibration_s > 0:
+                log.info(
+                    "tilt: hold the head still for %.1f s to calibrate its neutral pose",
+                    cfg.rider.tilt.neutral_calibration_s,
+                )
+        if cfg.rider.joystick.enabled:
+            from omnid.devices.joystick import JoystickLink
+
+            self.joystick = JoystickLink(cfg.joystick_device)
+            self._tasks.append(asyncio.create_task(self._joystick_keeper(), name="joystick"))
+            self._closers.append(self.joystick.stop)
+
+    async def _joystick_keeper(self) -> None:
+        """Open the joystick, retrying every second while it is absent at start (a missing
+        stick is a stop in the rider mux); once open, the link reopens it by itself."""
+        failures = 0
+        while not self._stop.is_set() and self.joystick is not None:
+            try:
+                await asyncio.wait_for(self.joystick.start(), timeout=2.0)
+                log.info("joystick %s open", self.config.joystick_device.url)
+                return
+            except Exception as exc:
+                failures += 1
+                if failures == 1 or failures % 60 == 0:
+                    log.warning("joystick unavailable (%s): rider input stops", exc)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), timeout=1.0)
 
     # ---- the control loop ---------------------------------------------------------------
+    def _cycle(self, now: float, urgent: bool = False) -> None:
+        healthy = self.link.status is not None
+        if healthy != self._link_was_ok:
+            self._link_was_ok = healthy
+            if healthy:
+                log.warning("control unit link back")
+            else:
+                log.error(
+                    "control unit link lost (%s): wheels stop once no status for %.2f s",
+                    self.link.health.last_error,
+                    self.config.control.status_timeout_s,
+                )
+        # a port that is gone stops at once; missed replies stop after status_timeout_s (the
+        # unit's own watchdog time), so one noisy exchange on the bus does not brake the chair
+        self.core.link_ok = self.link.health.connected
+        js = self.joystick
+        if js is not None:
+            reading = js.latest
+            if reading is not None:
+                self.core.on_joystick(reading)
+        cmd = self.core.step(now)
+        self.link.set_command(cmd, urgent=urgent)
+
     async def control_loop(self) -> None:
         period = self.config.control.period_s
         t0 = time.monotonic()
@@ -136,11 +226,19 @@ class Daemon:
             deadline = t0 + k * period
             now = time.monotonic()
             if now < deadline:
-                try:
-                    await asyncio.wait_for(self._stop.wait(), timeout=deadline - now)
+                if not self._kicked:
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(self._wake.wait(), timeout=deadline - now)
+                self._wake.clear()
+                if self._stop.is_set():
                     break
-                except TimeoutError:
-                    pass
+                now = time.monotonic()
+                if self._kicked and now < deadline:
+                    self._kicked = False
+                    if now - self._last_kick_s >= 0.005:  # a flood of lines: grid only
+                        self._last_kick_s = now
+                        self._cycle(now, urgent=True)
+                    continue  # then on to the same deadline
                 now = time.monotonic()
             late = now - deadline
             if late > period:  # more than one period behind: skip, do not bunch cycles
@@ -150,8 +248,7 @@ class Daemon:
                 deadline = t0 + k * period
                 late = now - deadline
             self.stats.record(late)
-            cmd = self.core.step(now)
-            self.link.set_command(cmd)
+            self._cycle(now)
             self._last_cycle_s = now
             if wd is not None and now >= next_watchdog:
                 self.notifier.watchdog()
@@ -166,98 +263,173 @@ class Daemon:
         if r is None:
             return "starting"
         reasons = ",".join(x.value for x in r.reasons) or "ok"
+        age = self.core.perception_time_s
+        perc = "none" if age is None else f"{time.monotonic() - age:.1f}s"
         return (
             f"rider={r.demand.reason} duty={r.command.left_duty:+.2f}/"
-            f"{r.command.right_duty:+.2f} limits={reasons} skipped={self.stats.skipped}"
+            f"{r.command.right_duty:+.2f} limits={reasons} perception_age={perc} "
+            f"skipped={self.stats.skipped}"
         )
 
     # ---- perception ---------------------------------------------------------------------
     async def _wait_laser(self, on: bool, timeout_s: float) -> bool:
-        """Wait until the control unit reports the laser ``on``; False on timeout."""
-        end = time.monotonic() + timeout_s
+        """Wait until a control-unit reply *after now* reports the laser ``on``; False on
+        timeout (the relay may lag the command)."""
+        t_set = time.monotonic()
+        end = t_set + timeout_s
         while time.monotonic() < end:
             st = self.link.status
-            if st is not None and bool(st.laser_on) == on and st.timestamp_s >= end - timeout_s:
+            if st is not None and bool(st.laser_on) == on and st.timestamp_s > t_set:
                 return True
-            await asyncio.sleep(0.005)
+            await asyncio.sleep(0.003)
         return False
 
+    async def _read(self, camera: Any) -> tuple[Any, Any, float]:
+        t_req = time.monotonic()
+        img1, img2, t_cam = await camera.read_pair()
+        return img1, img2, frame_time(float(t_cam), t_req, time.monotonic())
+
+    async def capture(self, camera: Any) -> Any:
+        """One mask/base stereo capture with the laser switched through the control unit."""
+        from omnid.core.types import StereoCapture
+
+        p = self.config.perception
+        t0 = time.monotonic()
+        try:
+            self.core.capturing = True
+            self.core.laser_on = False
+            if not await self._wait_laser(False, p.laser_timeout_s):
+                raise TimeoutError(
+                    f"control unit did not report the laser off within {p.laser_timeout_s:g} s"
+                )
+            if p.flush_frames:
+                await camera.flush()
+            m1, m2, t_mask = await self._read(camera)
+            self.core.laser_on = True
+            if not await self._wait_laser(True, p.laser_timeout_s):
+                raise TimeoutError(
+                    f"control unit did not report the laser on within {p.laser_timeout_s:g} s"
+                )
+            if p.flush_frames:
+                await camera.flush()
+            b1, b2, t_base = await self._read(camera)
+        finally:
+            self.core.capturing = False
+            self.core.laser_on = True
+        self.stats.note(self.stats.capture_s, time.monotonic() - t0)
+        self.stats.note(self.stats.mask_to_base_s, t_base - t_mask)
+        return StereoCapture(m1, b1, m2, b2, timestamp_s=t_base)
+
+    def _perception_error(self, what: str, exc: BaseException) -> None:
+        self.stats.perception_errors += 1
+        n = self.stats.perception_errors
+        if n == 1 or n % 20 == 0:
+            log.warning(
+                "perception cycle failed (%s; %d so far): %s — no forward motion while stale",
+                what,
+                n,
+                exc,
+            )
+
     async def perception_loop(self) -> None:
+        from omnid.core.pipeline import PerceptionSettings as PipelineSettings
+        from omnid.daemon.perception_worker import PerceptionFailed, PerceptionWorker
+        from omnid.devices.camera import open_camera
+        from omnid.errors import DeviceError
+
         cfg = self.config
         p = cfg.perception
-        try:
-            from omnid.core.calibration import Calibration  # type: ignore[import-not-found,unused-ignore]
-            from omnid.core.pipeline import perceive  # type: ignore[import-not-found,unused-ignore]
-            from omnid.core.types import StereoCapture
-            from omnid.devices.camera import open_camera
-
-            calib = Calibration.load(p.calibration_path)
-            camera = open_camera(cfg.camera)
-        except Exception as exc:
-            log.error("perception unavailable (%s): no forward motion until it works", exc)
-            return
-        self._closers.append(camera.close)
+        self.worker = PerceptionWorker(
+            self.calibration,
+            p.method,
+            PipelineSettings(detection=cfg.detection),
+            timeout_s=p.worker_timeout_s,
+            nice=p.worker_nice,
+        )
+        self._closers.append(self.worker.close)
+        await self.worker.start()
+        camera: Any = None
         while not self._stop.is_set():
             started = time.monotonic()
             try:
-                self.core.capturing = True
-                self.core.laser_on = False
-                await self._wait_laser(False, p.laser_timeout_s)
-                if p.flush_frames:
-                    await camera.flush()
-                m1, m2, _ = await camera.read_pair()
-                self.core.laser_on = True
-                if not await self._wait_laser(True, p.laser_timeout_s):
-                    raise TimeoutError("control unit did not report the laser on")
-                if p.flush_frames:
-                    await camera.flush()
-                b1, b2, t_base = await camera.read_pair()
-                self.core.capturing = False
-                capture = StereoCapture(m1, b1, m2, b2, timestamp_s=t_base)
-                w0 = time.perf_counter()
-                cloud = await asyncio.wait_for(
-                    asyncio.to_thread(perceive, capture, calib, p.method), timeout=5.0
-                )
-                self.stats.perception_s.append(time.perf_counter() - w0)
-                self.core.on_perception(cloud, t_base)
+                if camera is None:
+                    camera = open_camera(cfg.camera)
+                cap = await self.capture(camera)
+                w0 = time.monotonic()
+                cloud = await self.worker.perceive(cap)
+                t_done = time.monotonic()
+                self.core.on_perception(cloud, cap.timestamp_s)
+                self.stats.note(self.stats.perception_s, t_done - w0)
+                self.stats.note(self.stats.perception_latency_s, time.monotonic() - cap.timestamp_s)
                 self.stats.perception_cycles += 1
-            except Exception as exc:
-                self.stats.perception_errors += 1
-                if self.stats.perception_errors == 1 or self.stats.perception_errors % 50 == 0:
-                    log.warning(
-                        "perception cycle failed (%d so far): %s", self.stats.perception_errors, exc
-                    )
-            finally:
-                self.core.capturing = False
-                self.core.laser_on = True
+                if self.stats.perception_errors and self.stats.perception_cycles == 1:
+                    log.info("perception running (%d dots)", len(cloud))
+            except PerceptionFailed as exc:
+                self._perception_error("worker", exc)
+            except (DeviceError, OSError) as exc:
+                self._perception_error("camera", exc)
+                if camera is not None:
+                    with contextlib.suppress(Exception):
+                        await camera.close()
+                    camera = None
+            except TimeoutError as exc:
+                self._perception_error("laser", exc)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # a bug here must not end perception for good
+                self._perception_error("internal", exc)
+                log.debug("perception cycle exception", exc_info=True)
             rest = p.period_s - (time.monotonic() - started)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), timeout=max(rest, 0.01))
+        if camera is not None:
+            with contextlib.suppress(Exception):
+                await camera.close()
 
     # ---- life cycle ---------------------------------------------------------------------
     def reload(self) -> bool:
+        self.notifier.reloading()
         ok, why = self.holder.reload()
         if not ok:
-            self.notifier.status(f"reload refused: {why}")
+            self.notifier.send(f"READY=1\nSTATUS=reload refused: {why}")
             return False
         old = self.core
         new = ControlCore(self.holder.config, world_map=old.map)
         new.status, new.perception_time_s = old.status, old.perception_time_s
         new.odometry, new.motion.ramp.v_mm_s = old.odometry, old.motion.ramp.v_mm_s
         new.motion.ramp.omega_rad_s = old.motion.ramp.omega_rad_s
-        new.mux = old.mux if new.config.rider == old.config.rider else new.mux
+        new.laser_on, new.capturing, new.rearm_after = old.laser_on, old.capturing, old.rearm_after
+        new.link_ok = old.link_ok
+        if new.config.rider == old.config.rider:
+            new.mux = old.mux
+        elif old.config.rider.tilt.neutral_calibration_s > 0 and not old.mux.tilt.calibrating:
+            # keep the neutral pose measured at start across a reload
+            new.mux.tilt.calibrating = False
+            new.mux.tilt.set_neutral(old.mux.tilt.roll_offset_deg, old.mux.tilt.pitch_offset_deg)
         self.core = new
-        log.info("configuration reloaded (device settings apply at the next start)")
+        self.notifier.send("READY=1\nSTATUS=reloaded")
+        log.info("configuration reloaded (device and perception settings apply at the next start)")
         return True
 
     def request_stop(self) -> None:
         self._stop.set()
+        self._wake.set()
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
         loop.add_signal_handler(signal.SIGHUP, self.reload)
+        if self.config.perception.enabled:
+            # heavy imports now, before the control loop runs (an import inside a task would
+            # hold the event loop for hundreds of ms)
+            import omnid.core.pipeline
+            import omnid.daemon.perception_worker
+            import omnid.devices.camera  # noqa: F401
+        import gc
+
+        gc.collect()
+        gc.freeze()  # start-up objects leave the collector's scans: shorter GC pauses in the loop
         await self.link.start()
         try:
             await self._start_inputs()
@@ -283,10 +455,11 @@ class Daemon:
             t.cancel()
         for t in self._tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
+                await asyncio.wait_for(t, timeout=2.0)
         period = self.config.control.period_s
         end = time.monotonic() + 2.0
         while time.monotonic() < end:
+            self.core.link_ok = self.link.status is not None
             cmd = self.core.step(time.monotonic())
             self.link.set_command(cmd)
             if cmd.left_duty == 0.0 and cmd.right_duty == 0.0:
@@ -296,13 +469,14 @@ class Daemon:
         await asyncio.sleep(2 * self.config.control_unit.command_period_s)
         for close in reversed(self._closers):
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(close(), timeout=1.0)
+                await asyncio.wait_for(close(), timeout=3.0)
         await self.link.stop()
         log.info("omnid stopped; wheels at zero")
 
 
-def main(config_path: str) -> int:
-    """Load the configuration (errors name file and key) and run until SIGTERM."""
+def main(config_path: str, stats_out: str | None = None) -> int:
+    """Load the configuration and calibration (errors name file and key) and run until
+    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit."""
     holder = ConfigHolder(config_path)
     daemon_ref: list[Daemon] = []
 
@@ -313,12 +487,21 @@ def main(config_path: str) -> int:
 
     rc = asyncio.run(amain())
     if daemon_ref and daemon_ref[0].stats.cycles:
-        lat = sorted(daemon_ref[0].stats.lateness_s)
+        st = daemon_ref[0].stats
+        lat = sorted(st.lateness_s)
         p99 = lat[min(len(lat) - 1, math.ceil(0.99 * len(lat)) - 1)]
         log.info(
-            "control loop: %d cycles, %d skipped, lateness p99 %.2f ms",
-            daemon_ref[0].stats.cycles,
-            daemon_ref[0].stats.skipped,
+            "control loop: %d cycles, %d skipped, lateness p99 %.2f ms; perception: %d cycles, "
+            "%d failed",
+            st.cycles,
+            st.skipped,
             1e3 * p99,
+            st.perception_cycles,
+            st.perception_errors,
         )
+        if stats_out:
+            import dataclasses
+            import json
+
+            Path(stats_out).write_text(json.dumps(dataclasses.asdict(st)))
     return rc

@@ -44,7 +44,8 @@ class Notifier:
         try:
             if self._sock is None:
                 self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-                self._sock.settimeout(0.05)
+                # never block the control loop: a full receive queue drops this message
+                self._sock.setblocking(False)
             self._sock.sendto(message.encode("utf-8"), self.address)
             return True
         except OSError as exc:

@@ -162,6 +162,7 @@ class ControlUnitHealth:
     crc_errors: int = 0
     malformed: int = 0
     seq_errors: int = 0
+    late_bytes_discarded: int = 0
     port_errors: int = 0
     reconnects: int = 0
     consecutive_missed: int = 0
@@ -241,11 +242,14 @@ class ControlUnitLink:
         self._set_unhealthy("link stopped", warn=False)
         self._health.connected = False
 
-    def set_command(self, cmd: WheelCommand) -> None:
-        """Make ``cmd`` the command sent from the next period on."""
+    def set_command(self, cmd: WheelCommand, urgent: bool = False) -> None:
+        """Make ``cmd`` the command sent from the next period on; ``urgent``: send it now
+        (the period grid stays; a rider's new command need not wait up to a period)."""
         if not isinstance(cmd, WheelCommand):
             raise TypeError(f"set_command expects a WheelCommand, got {type(cmd).__name__}")
         self._command = cmd
+        if urgent:
+            self._wake.set()
 
     @property
     def command(self) -> WheelCommand:
@@ -253,8 +257,23 @@ class ControlUnitLink:
 
     @property
     def status(self) -> ControlUnitStatus | None:
-        """The latest status while the link is healthy; ``None`` when it is not (stop the chair)."""
-        return self._status if self._health.healthy else None
+        """The latest status while the link is healthy; ``None`` when it is not (stop the chair).
+
+        Also ``None`` (logged once) when the link task is not running or the newest reply is
+        older than ``unit_watchdog_s`` — by then the unit has stopped the motors by itself — so a
+        stuck or dead task cannot leave a stale status looking healthy.
+        """
+        st = self._status
+        if st is None or not self._health.healthy:
+            return None
+        age_s = time.monotonic() - st.timestamp_s
+        if self._task is None or self._task.done():
+            self._set_unhealthy("link task not running")
+            return None
+        if age_s > self.settings.unit_watchdog_s:
+            self._set_unhealthy(f"newest reply {age_s * 1000:.0f} ms old (link task stuck?)")
+            return None
+        return st
 
     @property
     def last_status(self) -> ControlUnitStatus | None:
@@ -264,6 +283,7 @@ class ControlUnitLink:
     @property
     def health(self) -> ControlUnitHealth:
         """A snapshot of connection state, last reply age and error counters."""
+        self.status  # noqa: B018 - applies the task/age rule to ``healthy``
         h = self._health.copy()
         if self._last_reply_t is not None:
             h.last_reply_age_s = time.monotonic() - self._last_reply_t
@@ -366,7 +386,6 @@ class ControlUnitLink:
                     if ever_connected:
                         self._health.reconnects += 1
                     ever_connected = True
-                    backoff = s.reconnect_initial_s
                     next_t = loop.time()
                 else:
                     await self._sleep(backoff)
@@ -376,11 +395,21 @@ class ControlUnitLink:
                 await self._exchange(loop)
             except DeviceError as exc:
                 self._drop_transport(f"port error: {exc}")
+                # back off before reopening: a port that opens but fails at once must not
+                # spin the event loop
+                await self._sleep(backoff)
+                backoff = min(backoff * 2, s.reconnect_max_s)
                 continue
             except Exception as exc:  # a bug must not leave the unit without a stop decision
                 log.exception("control unit link: unexpected error")
                 self._drop_transport(f"internal error: {exc!r}")
+                # back off before reopening: a port that opens but fails at once must not
+                # spin the event loop
+                await self._sleep(backoff)
+                backoff = min(backoff * 2, s.reconnect_max_s)
                 continue
+            if self._health.consecutive_missed == 0:
+                backoff = s.reconnect_initial_s  # the device answered: a fresh back-off
             next_t += s.command_period_s
             delay = next_t - loop.time()
             if delay < -s.command_period_s:  # overran (loop blocked): restart the grid
@@ -389,16 +418,23 @@ class ControlUnitLink:
             await self._sleep(max(delay, 0.0))
 
     async def _sleep(self, delay_s: float) -> None:
-        self._wake.clear()
+        # cleared after waking, so a wake-up set during an exchange (urgent command) is not lost
+        if self._stopping:
+            return
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(delay_s):
                 await self._wake.wait()
+        self._wake.clear()
 
     async def _exchange(self, loop: asyncio.AbstractEventLoop) -> None:
         """One command → reply exchange; bookkeeping of every outcome."""
         t = self._transport
         assert t is not None
         h = self._health
+        # Half duplex: whatever is still in the input is a late (part of a) reply to an earlier
+        # command. Drop it, so that its tail cannot be parsed as a CRC error against this command.
+        h.late_bytes_discarded += t.reset_input()
+        self._parser.reset()
         frame = self._next_frame()
         seq = frame.seq
         await t.write(codec.encode_command(frame))

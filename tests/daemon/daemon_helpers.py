@@ -93,3 +93,27 @@ def floor_cloud(obstacle_x_mm: float | None = None, floor_depth_mm: float = 1100
         classes=classes,
         floor_depth_mm=floor_depth_mm,
     )
+
+
+def faulty_perceive(capture, calib, method, settings) -> PointCloud:
+    """A perceive stand-in for the worker-process tests, steered by mask1[0, 0]:
+    1 hangs, 2 kills the process, 3 raises, anything else returns one floor point whose x is
+    base1[0, 0] (so a reply can be matched to its request)."""
+    import os
+    import time
+
+    code = int(capture.mask1[0, 0])
+    if code == 1:
+        time.sleep(3600)
+    if code == 2:
+        os._exit(3)
+    if code == 3:
+        raise ValueError("bad capture")
+    x = float(capture.base1[0, 0])
+    return PointCloud(
+        xyz=np.array([[x, 0.0, 1100.0]]),
+        cov=np.zeros((1, 3, 3)),
+        pixels=np.zeros((1, 4)),
+        classes=np.zeros(1, np.uint8),
+        floor_depth_mm=1100.0,
+    )

@@ -24,7 +24,8 @@ DAEMON_SECTIONS = (
     "control_unit",
     "camera",
     "teleop",
-    "inputs",
+    "tilt_sensor",
+    "joystick_device",
     "service",
 )
 
@@ -40,17 +41,25 @@ def keys(tree, prefix=""):
 
 def test_shipped_file_is_valid_and_lists_every_daemon_key():
     cfg = load_config(SHIPPED)
-    # the file documents the defaults, except the devices' stable udev names
+    # the file documents the defaults, except the devices' stable udev names, the neutral-pose
+    # calibration at start and re-arming after a fault (on for a real rider; off for
+    # clock-injected users)
     assert cfg.control_unit.port == "/dev/omnid-control-unit"
     assert cfg.camera.url == "v4l2:///dev/omnid-camera1,/dev/omnid-camera2"
+    assert cfg.rider.tilt.neutral_calibration_s == 3.0
+    d = OmnidConfig()
     assert (
         replace(
             cfg,
-            control_unit=replace(cfg.control_unit, port=OmnidConfig().control_unit.port),
-            camera=replace(cfg.camera, url=OmnidConfig().camera.url),
+            control_unit=replace(cfg.control_unit, port=d.control_unit.port),
+            camera=replace(cfg.camera, url=d.camera.url),
+            rider=replace(cfg.rider, tilt=d.rider.tilt),
+            control=replace(cfg.control, rearm_after_fault=False),
         )
-        == OmnidConfig()
+        == d
     )
+    assert cfg.control.rearm_after_fault
+    assert replace(cfg.rider.tilt, neutral_calibration_s=0.0) == d.rider.tilt
     shipped = keys(yaml.safe_load(SHIPPED.read_text()))
     defaults = keys({s: to_mapping(getattr(OmnidConfig(), s)) for s in DAEMON_SECTIONS})
     assert defaults <= shipped

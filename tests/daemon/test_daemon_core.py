@@ -202,3 +202,37 @@ def test_joystick_source_drives_turn():
         cmd = core.step(float(t))
         chair.apply(cmd, DT)
     assert cmd.left_duty < 0 < cmd.right_duty  # turning left in place
+
+
+def test_after_a_control_unit_fault_motion_waits_for_the_riders_release():
+    from dataclasses import replace
+
+    for rearm in (True, False):
+        cfg = OmnidConfig(
+            rider=RiderSettings(tilt=TiltSettings(enabled=False)),
+            control=replace(OmnidConfig().control, rearm_after_fault=rearm),
+        )
+        core = ControlCore(cfg, world_map=RecordingMap(cfg.freespace.grid))
+        t = 0.0
+        core.on_status(Status(0, 0, 0, True, 0, t))
+        core.on_perception(floor_cloud(), t)
+
+        def turning(now: float, core: ControlCore = core) -> bool:
+            core.on_status(Status(0, 0, 0, True, 0, now))
+            core.on_key("left", now)
+            cmd = core.step(now)
+            return cmd.left_duty < 0.0 < cmd.right_duty
+
+        assert any(turning(t + 0.02 * k) for k in range(1, 30))
+        t += 0.6
+        core.link_ok = False  # the link reports itself unhealthy: stop at once
+        core.on_key("left", t)
+        cmd = core.step(t)
+        assert (cmd.left_duty, cmd.right_duty, cmd.enable) == (0.0, 0.0, False)
+        core.link_ok = True
+        resumed = any(turning(t + 0.02 * k) for k in range(1, 30))
+        assert resumed is (not rearm)
+        if rearm:  # the rider lets go once (key expires), then asks again: turning
+            core.on_status(Status(0, 0, 0, True, 0, t + 1.5))
+            core.step(t + 1.5)
+            assert any(turning(t + 1.5 + 0.02 * k) for k in range(1, 30))

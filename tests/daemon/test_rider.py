@@ -176,3 +176,41 @@ def test_mux_joystick_nan_is_stop():
     )
     mux.on_joystick(Stick(float("nan"), 0.0, 0.0))
     assert mux.decide(0.01).reason == "joystick_invalid"
+
+
+def test_neutral_pose_is_measured_at_start_and_retaken_when_the_head_moves():
+    interp = TiltInterpreter(settings(neutral_calibration_s=1.0))
+    mux = RiderMux(RiderSettings(tilt=settings(neutral_calibration_s=1.0)))
+    rng = np.random.default_rng(1)
+    t = 0.0
+    # the head wobbles by 6° during the first second: retaken; meanwhile the source asks stop
+    for _ in range(105):
+        interp.update(3.0 + 6.0 * np.sin(t * 9), -2.0, t)
+        mux.on_tilt(Tilt(3.0 + 6.0 * np.sin(t * 9), -2.0, t))
+        t += 0.01
+    assert interp.calibrating and interp.calibrations_failed == 1
+    assert mux.decide(t).reason == "tilt_calibrating" and mux.decide(t).stop
+    # then it holds still (0.2° noise) around roll 3°, pitch −2°: that is the neutral
+    for _ in range(110):
+        assert interp.update(3.0 + rng.normal(0, 0.2), -2.0 + rng.normal(0, 0.2), t) is Intent.NONE
+        t += 0.01
+    assert not interp.calibrating
+    assert interp.roll_offset_deg == pytest.approx(3.0, abs=0.1)
+    assert interp.pitch_offset_deg == pytest.approx(-2.0, abs=0.1)
+    # −10° roll is only 13° from this neutral... past the 12° threshold: forward after the dwell
+    assert feed(interp, -10.0, -2.0, t, t + 0.5) is Intent.FORWARD
+
+
+def test_a_head_held_in_a_command_pose_does_not_become_the_neutral():
+    interp = TiltInterpreter(settings(neutral_calibration_s=0.5))
+    feed(interp, -18.0, 0.0, 0.0, 1.5)  # held forward the whole time: beyond 10° from level
+    assert interp.calibrating and interp.calibrations_failed >= 2
+
+
+def test_after_a_gap_in_readings_the_dwell_starts_afresh():
+    interp = TiltInterpreter(settings())
+    assert feed(interp, -20.0, 0.0, 0.0, 0.5) is Intent.FORWARD
+    # unplugged for 0.5 s (> timeout_s 0.2), the head still forward when readings resume
+    assert interp.update(-20.0, 0.0, 1.0) is Intent.NONE
+    assert feed(interp, -20.0, 0.0, 1.01, 1.2) is Intent.NONE  # dwell not yet over
+    assert feed(interp, -20.0, 0.0, 1.2, 1.4) is Intent.FORWARD

@@ -1,0 +1,236 @@
+"""The whole daemon as systemd starts it: ``omnid run --config FILE`` with ``$NOTIFY_SOCKET``,
+against the control-unit AND GS311 emulators on real ptys, camera frames from a frame server
+(``sim+unix://``) that shows the laser dots only while the emulated unit has switched the laser
+on, and a calibration written by ``omnid calibrate`` from those frames. Perception runs for real
+(worker process, the best pipeline) on a rendered empty floor.
+
+One scenario, in order: READY=1 → neutral head pose calibrated → head tilted forward past the
+threshold for the dwell time → the wheels turn forward → tilt sensor unplugged → duty 0 within
+the promised time → replugged → forward again → control unit stalled → the daemon logs it, and
+after the unit recovers it commands stop although the head is still forward → head released and
+tilted again → forward → SIGHUP with a broken file → still driving with the old config → SIGTERM
+→ duty 0, exit 0.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from omnid.core.geometry import StereoRig
+from omnid.core.laser import DotPattern
+from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
+from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
+from omnid.sim.frame_server import FrameServer
+from omnid.sim.render import render_capture
+
+FLOOR_MM = 1100.0
+NEUTRAL = (1.5, -1.0)  # the rider's head at rest (roll, pitch), deg: calibrated at start
+FORWARD = (NEUTRAL[0] - 20.0, NEUTRAL[1])  # roll < -12° past neutral: forward (thesis 4.2.2)
+# promised: tilt silent → stop within rider.tilt.timeout_s (0.2) + emergency ramp from the
+# tilt forward speed (0.6 · 240 mm/s at 1200 mm/s² = 0.12 s) + two 20 ms periods (loop, link)
+PROMISED_TILT_STOP_S = 0.2 + 0.12 + 0.04
+
+
+def wait_for(pred, timeout_s: float, step_s: float = 0.01) -> float | None:
+    """Seconds until ``pred()`` held, or None on timeout."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if pred():
+            return time.monotonic() - t0
+        time.sleep(step_s)
+    return None
+
+
+def forward(emu: ControlUnitEmulator) -> bool:
+    left, right = emu.applied_duty
+    return left > 0.05 and right > 0.05
+
+
+def stopped(emu: ControlUnitEmulator) -> bool:
+    return emu.applied_duty == (0.0, 0.0)
+
+
+def hold(gs: Gs311Emulator, angles: tuple[float, float]) -> None:
+    gs.motion = HeadMotion([(0.0, *angles)])
+
+
+@pytest.fixture(scope="module")
+def floor_frames(tmp_path_factory) -> tuple[Path, object]:
+    """An empty floor seen by the nominal rig, and ``omnid calibrate`` run on it (subprocess)."""
+    d = tmp_path_factory.mktemp("floor")
+    rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
+    cap = render_capture(rig, DotPattern().on_plane(FLOOR_MM), seed=3)
+    names = ("mask1", "base1", "mask2", "base2")
+    for name in names:
+        cv2.imwrite(str(d / f"{name}.png"), getattr(cap, name))
+    calib = d / "calib.yaml"
+    args = [a for n in names for a in (f"--{n}", str(d / f"{n}.png"))]
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "omnid.cli",
+            "calibrate",
+            *args,
+            "--floor-depth-mm",
+            str(FLOOR_MM),
+            "--out",
+            str(calib),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    return calib, cap
+
+
+def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> None:
+    calib, cap = floor_frames
+    cu = ControlUnitEmulator(MotorPlant())
+    cu_path = cu.open_pty()
+    gs = Gs311Emulator([(0.0, *NEUTRAL)], noise_deg=0.2)
+    tilt_link = str(tmp_path / "tilt")
+    gs.open_pty(link_path=tilt_link)
+    frames = str(tmp_path / "frames.sock")
+
+    def provider():
+        on = cu.laser_on  # the relay as switched through the pty
+        return (
+            time.monotonic(),
+            cap.base1 if on else cap.mask1,
+            cap.base2 if on else cap.mask2,
+        )
+
+    cfg = tmp_path / "omnid.yaml"
+    good = (
+        f"control_unit:\n  port: {cu_path}\n"
+        f"tilt_sensor:\n  port: {tilt_link}\n"
+        f"camera:\n  url: sim+unix://{frames}\n"
+        f"teleop:\n  socket_path: {tmp_path / 'teleop.sock'}\n"
+        f"perception:\n  calibration_path: {calib}\n  period_s: 0.3\n  worker_nice: 0\n"
+        "rider:\n  tilt:\n    neutral_calibration_s: 0.5\n"
+        "control:\n  rearm_after_fault: true\n"
+    )
+    cfg.write_text(good)
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp_path / "notify.sock"))
+    notify.settimeout(10.0)
+    err_path = tmp_path / "stderr.log"
+    env = dict(os.environ, NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC="2000000")
+    with FrameServer(frames, provider), open(err_path, "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "omnid.cli", "run", "--config", str(cfg)],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+        )
+        try:
+            msgs: list[str] = []
+            while not any(m.startswith("READY=1") for m in msgs):
+                msgs.append(notify.recv(4096).decode())
+            assert wait_for(lambda: cu.commands_received > 10, 3.0) is not None
+            assert stopped(cu)
+            # neutral-pose calibration: 0.5 s of still readings (wait for its log line: the
+            # start-up takes longer on a loaded machine)
+            assert wait_for(lambda: "neutral pose calibrated" in err_path.read_text(), 15.0)
+            assert stopped(cu)
+
+            # head forward past the threshold for the dwell time → wheels turn forward (this
+            # needs perception: a fresh cloud of free floor ahead)
+            hold(gs, FORWARD)
+            assert wait_for(lambda: forward(cu), 8.0) is not None, err_path.read_text()[-3000:]
+            time.sleep(0.3)
+
+            # tilt sensor unplugged → duty 0 within the promised time
+            gs.unplug()
+            t_stop = wait_for(lambda: stopped(cu), 2.0, step_s=0.002)
+            assert t_stop is not None and t_stop <= PROMISED_TILT_STOP_S, t_stop
+            time.sleep(0.3)
+            assert stopped(cu)
+            gs.replug()  # the head is still forward: after the dwell it drives again
+            assert wait_for(lambda: forward(cu), 4.0) is not None
+
+            # control unit stalled: the daemon notices; after recovery it commands stop
+            cu.stall()
+            time.sleep(0.5)
+            before = cu.commands_received
+            cu.recover()
+            assert wait_for(lambda: cu.commands_received > before + 10, 2.0) is not None
+            t_end = time.monotonic() + 0.8
+            while time.monotonic() < t_end:  # head still forward, chair stays stopped
+                assert stopped(cu)
+                time.sleep(0.01)
+            hold(gs, NEUTRAL)  # the rider releases ...
+            time.sleep(0.3)
+            hold(gs, FORWARD)  # ... and asks again
+            assert wait_for(lambda: forward(cu), 4.0) is not None
+
+            # SIGHUP with a broken file: refused, the old configuration keeps driving
+            cfg.write_text(good.replace("rearm_after_fault: true", "rate_hz: nope"))
+            proc.send_signal(signal.SIGHUP)
+            time.sleep(0.4)
+            assert proc.poll() is None
+            assert forward(cu)
+
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=10.0) == 0
+            assert stopped(cu)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=5)
+            notify.close()
+            gs.close()
+            cu.close()
+    log = err_path.read_text()
+    assert "tilt neutral pose calibrated" in log
+    assert "control unit link lost" in log
+    assert "until the rider releases" in log
+    assert "reload refused" in log and "control.rate_hz" in log
+    assert "wheels at zero" in log
+    assert "Traceback" not in log
+
+
+def test_missing_calibration_refuses_start_in_one_line(tmp_path: Path) -> None:
+    cfg = tmp_path / "omnid.yaml"
+    missing = tmp_path / "nope" / "calib.yaml"
+    cfg.write_text(f"perception:\n  calibration_path: {missing}\n")
+    out = subprocess.run(
+        [sys.executable, "-m", "omnid.cli", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert out.returncode == 2
+    assert out.stderr.strip().count("\n") == 0, out.stderr
+    assert str(missing) in out.stderr and "perception.calibration_path" in out.stderr
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format_version: 1\nrig: 3\n")
+    cfg.write_text(f"perception:\n  calibration_path: {bad}\n")
+    out = subprocess.run(
+        [sys.executable, "-m", "omnid.cli", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert out.returncode == 2 and out.stderr.strip().count("\n") == 0, out.stderr
+    assert str(bad) in out.stderr
+
+
+def test_frame_time_keeps_own_clock_stamps_and_replaces_foreign_ones() -> None:
+    from omnid.daemon.run import frame_time
+
+    assert frame_time(100.05, 100.0, 100.1) == 100.05  # V4L2: stamped inside the read
+    assert frame_time(3.2, 100.0, 100.1) == pytest.approx(100.05)  # simulator's own clock
+    assert np.isfinite(frame_time(float("nan"), 1.0, 2.0))

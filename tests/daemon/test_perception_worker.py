@@ -1,0 +1,82 @@
+"""The perception worker process: results come back, and an exception, a crash or a hang of
+perceive costs one failed request (at most ``timeout_s``), never a stalled event loop."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+from daemon_helpers import faulty_perceive
+
+from omnid.core.types import StereoCapture
+from omnid.daemon.perception_worker import (
+    PerceptionFailed,
+    PerceptionWorker,
+    decode_request,
+    encode_request,
+)
+
+
+def capture(code: int, x: int, shape=(48, 64)) -> StereoCapture:
+    imgs = [np.zeros(shape, np.uint8) for _ in range(4)]
+    imgs[0][0, 0] = code
+    imgs[1][0, 0] = x
+    imgs[2][5, 7] = 9
+    return StereoCapture(*imgs, timestamp_s=12.5)
+
+
+def test_request_round_trip_is_exact():
+    cap = capture(0, 77, shape=(480, 640))
+    back = decode_request(encode_request(cap))
+    assert back.timestamp_s == 12.5
+    for a, b in zip(
+        (cap.mask1, cap.base1, cap.mask2, cap.base2),
+        (back.mask1, back.base1, back.mask2, back.base2),
+        strict=True,
+    ):
+        assert np.array_equal(a, b)
+    with pytest.raises(ValueError):
+        decode_request(encode_request(cap)[:-1])
+
+
+def test_worker_survives_exception_crash_and_hang_without_stalling_the_loop():
+    async def main() -> tuple[list[str], float, PerceptionWorker]:
+        w = PerceptionWorker(None, timeout_s=0.5, nice=0, fn=faulty_perceive)
+        await w.start()
+        gaps: list[float] = []
+        stop = asyncio.Event()
+
+        async def ticker() -> None:  # stands in for the control loop
+            last = time.monotonic()
+            while not stop.is_set():
+                await asyncio.sleep(0.01)
+                now = time.monotonic()
+                gaps.append(now - last)
+                last = now
+
+        tick = asyncio.create_task(ticker())
+        out: list[str] = []
+        for code, x in ((0, 11), (3, 0), (0, 12), (2, 0), (0, 13), (1, 0), (0, 14)):
+            t0 = time.monotonic()
+            try:
+                cloud = await w.perceive(capture(code, x))
+                out.append(f"ok {cloud.xyz[0, 0]:.0f}")
+            except PerceptionFailed as exc:
+                out.append(f"failed {exc}")
+            if code == 1:
+                assert time.monotonic() - t0 < 0.5 + 1.5  # timeout plus the kill
+        stop.set()
+        await tick
+        await w.close()
+        return out, max(gaps), w
+
+    out, worst_gap, w = asyncio.run(main())
+    assert out[0] == "ok 11" and out[2] == "ok 12" and out[4] == "ok 13" and out[6] == "ok 14"
+    assert out[1].startswith("failed perceive failed: ValueError: bad capture")
+    assert out[3].startswith("failed perception worker crashed")
+    assert out[5].startswith("failed perceive took longer than 0.5 s")
+    assert w.restarts == 2 and w.failures == 3
+    # the event loop kept ticking throughout (spawning a child may cost a few ms)
+    assert worst_gap < 0.1, worst_gap
