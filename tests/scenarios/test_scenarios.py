@@ -40,11 +40,6 @@ def test_forward_at_a_wall_stops_with_the_promised_margin_and_never_touches_it()
     assert result.timings["perception_cycles"] >= 40
 
 
-@pytest.mark.xfail(
-    reason="main's best matcher reports a phantom obstacle row across the gap (lattice "
-    "mis-pairing near the partition); passes with truth perception — fix pending in the matcher",
-    strict=False,
-)
 def test_passes_a_passage_wider_than_the_chair():
     core = make_core()
     course = room(passage(1300.0), length_mm=6000.0)  # chair 700 mm (+2 x 50 margin)
