@@ -227,34 +227,58 @@ def summary_lines(result: SimResult) -> list[str]:
     return lines
 
 
-def _x_at(traj: NDArray[np.float64], t_s: float) -> float:
-    i = min(int(np.searchsorted(traj[:, 0], t_s)), len(traj) - 1)
-    return float(traj[i, 1])
+#: The demo story's checked steps (:func:`omnid.sim.story.demo_story`): step, the reason its
+#: refusal must name, and where the thing refused stands in the built-in course — the refusal
+#: counts only if the chair stood within ``_NEAR_MM`` of it (not a phantom elsewhere).
+_NEAR_MM = 700.0
+
+
+def _near_narrow(pose: tuple[float, float, float]) -> tuple[bool, str]:
+    front = pose[0] + ChairSettings().footprint_front_mm * math.cos(pose[2])
+    gap = 3800.0 - front  # partition B's face
+    return 0.0 <= gap <= _NEAR_MM, f"footprint front {gap:.0f} mm before the narrow passage"
+
+
+def _near_stairs(pose: tuple[float, float, float]) -> tuple[bool, str]:
+    front = pose[1] + ChairSettings().footprint_front_mm * math.sin(pose[2])
+    gap = front - (-1700.0)  # the stairs' edge
+    return 0.0 <= gap <= _NEAR_MM, f"footprint front {gap:.0f} mm before the stairs' edge"
+
+
+def _near_box3(pose: tuple[float, float, float]) -> tuple[bool, str]:
+    dx = max(2100.0 - pose[0], 0.0, pose[0] - 2400.0)
+    dy = max(-1100.0 - pose[1], 0.0, pose[1] - (-700.0))
+    d = math.hypot(dx, dy)
+    reach = math.hypot(ChairSettings().footprint_front_mm, ChairSettings().footprint_width_mm / 2)
+    return d - reach <= _NEAR_MM, f"box 3 {d:.0f} mm from the axle"
+
+
+_CHECKED = (
+    ("on to the narrow passage", "narrow passage refused", "obstacle_stop", _near_narrow),
+    ("forward towards the stairs", "stopped before the stairs", "dropoff_stop", _near_stairs),
+    ("turn right, towards box 3", "turn towards box 3 refused", "obstacle_stop", _near_box3),
+)
 
 
 def story_checks(result: SimResult) -> list[tuple[str, bool, str]]:
-    """The demo's story, checked against the run: ``(step, happened, evidence)``. Times are
-    those of :data:`omnid.sim.course.DEMO_STORY`."""
-
-    def refused(t0: float, t1: float, reason: str) -> list[tuple[float, str]]:
-        return [(t, m) for t, m in result.refusals if t0 <= t < t1 and reason in m]
-
+    """The demo's story, checked against the run: ``(step, happened, evidence)``, from the
+    reactive rider's step records (:attr:`SimResult.story`): each refusal must have ended its
+    step, name the right reason and come where the thing refused stands."""
     traj = result.trajectory
     x_max = float(traj[:, 1].max()) if len(traj) else 0.0
     rear_mm = ChairSettings().footprint_rear_mm
     steps = [
         ("through the wide passage", x_max - rear_mm > 2000.0, f"axle reached x = {x_max:.0f} mm"),
     ]
-    for what, t0, t1, reason in (
-        ("narrow passage refused", 1.0, 27.0, "obstacle_stop"),
-        ("stopped before the stairs", 37.0, 50.0, "dropoff_stop"),
-        ("turn towards box 3 refused", 52.0, 60.0, "obstacle_stop"),
-    ):
-        hits = refused(t0, t1, reason)
-        if what.startswith("narrow"):  # only once through the wide passage
-            hits = [h for h in hits if _x_at(traj, h[0]) - rear_mm > 2000.0]
-        ev = f"t = {hits[0][0]:.2f} s: {hits[0][1]}" if hits else f"no {reason} in {t0}-{t1} s"
-        steps.append((what, bool(hits), ev))
+    records = {r.what: r for r in result.story}
+    for step, what, reason, near in _CHECKED:
+        rec = records.get(step)
+        if rec is None:
+            steps.append((what, False, f"step {step!r} never ended"))
+            continue
+        ok_place, place = near(rec.pose_mm_rad)
+        ok = rec.ended == "done" and reason in rec.evidence and ok_place
+        steps.append((what, ok, f"{rec.evidence}; {place}"))
     n = len(result.contacts)
     steps.append(
         (
@@ -284,6 +308,16 @@ def write_report(
         lines += ["## Story", ""]
         lines += [
             f"- [{'x' if ok else ' '}] {what} — {ev}" for what, ok, ev in story_checks(result)
+        ]
+        lines += [
+            "",
+            "The rider's steps (each ends when the rider sees it done, or times out):",
+            "",
+        ]
+        lines += ["| step | from | to | ended | how |", "| --- | --- | --- | --- | --- |"]
+        lines += [
+            f"| {r.what} | {r.t0_s:.1f} s | {r.t1_s:.1f} s | {r.ended} | {r.evidence} |"
+            for r in result.story
         ]
         lines.append("")
     lines += ["## Figures", "", *summary_lines(result), ""]
