@@ -100,6 +100,23 @@ class ControlUnitStatus:
     def fault_names(self) -> tuple[str, ...]:
         return codec.fault_names(self.faults)
 
+    @classmethod
+    def from_reply(
+        cls, rep: codec.ReplyFrame, left_clocks: int, right_clocks: int, timestamp_s: float
+    ) -> ControlUnitStatus:
+        """The status a decoded reply gives, with clock counters already unwrapped."""
+        return cls(
+            seq=rep.seq,
+            left_clocks=left_clocks,
+            right_clocks=right_clocks,
+            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
+            faults=rep.faults,
+            timestamp_s=timestamp_s,
+            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
+            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
+            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
+        )
+
 
 @dataclass(frozen=True)
 class ControlUnitSettings:
@@ -331,17 +348,7 @@ class ControlUnitLink:
         h.replies_ok += 1
         h.consecutive_missed = 0
         self._last_reply_t = now
-        self._status = ControlUnitStatus(
-            seq=rep.seq,
-            left_clocks=self._unwrapped[0],
-            right_clocks=self._unwrapped[1],
-            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
-            faults=rep.faults,
-            timestamp_s=now,
-            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
-            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
-            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
-        )
+        self._status = ControlUnitStatus.from_reply(rep, *self._unwrapped, now)
         if not h.healthy:
             h.healthy = True
             log.info("control unit link healthy (seq %d)", rep.seq)

@@ -388,17 +388,7 @@ class EmulatedControlUnit:
         else:
             self._clocks = raw
         self._raw = raw
-        return ControlUnitStatus(
-            seq=rep.seq,
-            left_clocks=self._clocks[0],
-            right_clocks=self._clocks[1],
-            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
-            faults=rep.faults,
-            timestamp_s=now_s,
-            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
-            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
-            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
-        )
+        return ControlUnitStatus.from_reply(rep, *self._clocks, now_s)
 
     def advance(self, now_s: float, dt_s: float) -> None:
         """Let the emulator drive the plant up to ``now_s + dt_s``."""
