@@ -1,8 +1,9 @@
 """``omnid demo`` — the daemon on the simulator, no hardware needed.
 
 Runs the daemon's core in the built-in course (a room with three boxes, a wide and a narrow
-passage and stairs down) with a scripted rider who heads straight for the stairs, then turns
-towards a box; prints progress and writes ``report.md`` and ``course.png`` (the path, what
+passage and stairs down) with a reactive rider (head tilt; the joystick only to back away) who
+drives through the wide passage, is refused at the narrow one, turns towards the stairs until
+refused, then towards a box seen on the way (refused from the map); prints progress and writes ``report.md`` and ``course.png`` (the path, what
 perception saw, where commands were refused) into ``./omnid-demo/``. About a minute or less.
 """
 
@@ -21,7 +22,8 @@ def register(subparsers: Any) -> None:
         description=__doc__.split("\n")[0] if __doc__ else None,
     )
     add_run_arguments(p, default_out="./omnid-demo")
-    p.set_defaults(func=handle, duration_s=62.0)
+    # at most: every step of the reactive story to its timeout; the run ends with the story
+    p.set_defaults(func=handle, duration_s=130.0)
 
 
 def handle(args: argparse.Namespace) -> int:

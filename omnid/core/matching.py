@@ -26,6 +26,8 @@ them. An empty input gives an empty (0, 4) result.
     * the laser lattice — the mean lateral slope (e1 + e2)/2 = Y/Z of a true pair is the slope
       of a laser ray (the source sits midway between the mirrors), so a pairing shifted by one
       lattice step falls between rays and is rejected;
+    * no phantom drop-off — a pair read under the floor needs a neighbour at its depth (a dot
+      whose partner is hidden pairs with a nearer dot's image beside it, at an occluder's edge);
     * the remaining ambiguity — a pairing shifted by two lattice steps describes another flat
       surface at a wrong depth (SPEC §2). Along each laser row the assignment is a chain
       ordered by laser ray, camera-1 column and camera-2 column (the order of dots along a
@@ -77,6 +79,14 @@ class MatchSettings:
     double_dot_ratio: float = 1.35  # best: brighter than this × median = two merged dots
     anchor_margin_px: float = 5.0  # best: a row end is the lattice end when one more dot
     # would lie this far inside the mirror disk
+    dropoff_min_mm: float = 20.0  # best: a pair read this far under the floor (and 5 σ of
+    # the disparity scatter) needs a neighbour (next ray of its row or same ray of the next
+    # row) at the same depth
+    phantom_margin_mm: float = 100.0  # best: a dot read this much nearer than a lower row's
+    # dot of the same laser column, at the floor's shifted depth, is refused
+    # best: a step along a row counts as one ray when within this × lattice step; None: from
+    # the calibration's dot scatter (5·√2·σ over the step in px, at least 0.05)
+    walk_tol: float | None = None
     thesis_search_px: float = 1.0  # thesis: neighbourhood searched for each n of eq. 6.16
     thesis_max_n: int | None = None  # thesis: upper limit of n; None = from min_depth_mm
 
@@ -86,6 +96,9 @@ class MatchSettings:
         require(self.dropoff_depth_mm >= 0, "dropoff_depth_mm", "must not be negative")
         require(0 < self.lattice_tol < 0.5, "lattice_tol", "must be in (0, 0.5)")
         require(self.anchor_margin_px >= 0, "anchor_margin_px", "must not be negative")
+        require(self.walk_tol is None or 0 < self.walk_tol < 0.5, "walk_tol", "must be in (0, 0.5)")
+        require(self.dropoff_min_mm > 0, "dropoff_min_mm", "must be positive")
+        require(self.phantom_margin_mm > 0, "phantom_margin_mm", "must be positive")
         require(self.thesis_search_px > 0, "thesis_search_px", "must be positive")
         require(self.thesis_max_n is None or self.thesis_max_n >= 0, "thesis_max_n", "must be >= 0")
 
@@ -316,8 +329,14 @@ def _match_best(
     # Anchors: ray index of each dot implied by a lattice end visible in its camera, or −1.
     mult1 = _multiplicity(d1[:, 2], s.double_dot_ratio)
     mult2 = _multiplicity(d2[:, 2], s.double_dot_ratio)
-    k1 = _anchor_labels(rig.cam1, p1, l1, on1, lat, s, mult1 > 1)
-    k2 = _anchor_labels(rig.cam2, p2, l2, on2, lat, s, mult2 > 1)
+    walk_tol = s.walk_tol
+    sigma_px = float(calib.residuals.get("row_rms_px", 0.1)) if calib.residuals else 0.1
+    if walk_tol is None:
+        # a depth jump across a hidden ray can mimic one step to within a few hundredths, so
+        # the walk is as strict as the dots' own scatter allows (0.1 px when unknown)
+        walk_tol = min(0.25, max(0.05, 5.0 * math.sqrt(2.0) * sigma_px / (f * sb)))
+    k1 = _anchor_labels(rig.cam1, p1, l1, on1, lat, s, mult1 > 1, walk_tol)
+    k2 = _anchor_labels(rig.cam2, p2, l2, on2, lat, s, mult2 > 1, walk_tol)
     # Candidates: same laser row, disparity D/Z in the window, mid slope on a laser ray.
     lo, hi = D / (H + s.dropoff_depth_mm), D / s.min_depth_mm
     ids2 = np.flatnonzero(on2)
@@ -339,6 +358,7 @@ def _match_best(
     res_b = np.abs(kb - ray)
     keep = (res_b <= s.lattice_tol) & (np.abs(p1[i, 0] - p2[j, 0]) <= tol_a)
     keep &= (ray >= lat.cols[0]) & (ray <= lat.cols[1])  # no dot comes from a ray that is not there
+    i0, j0 = i[keep], j[keep]  # before the labels: for the phantom check
     # A dot whose camera shows the end of its laser row knows its ray: pairs against it go.
     keep &= (k1[i] == _NO_RAY) | (k1[i] == ray)
     keep &= (k2[j] == _NO_RAY) | (k2[j] == ray)
@@ -394,7 +414,182 @@ def _match_best(
         2.0 * sb,
         mult2,
     )
-    return np.concatenate([si, vi]).astype(np.intp), np.concatenate([sj, vj]).astype(np.intp)
+    ci = np.concatenate([si, vi]).astype(np.intp)
+    cj = np.concatenate([sj, vj]).astype(np.intp)
+    suspect = _floor_phantom_suspects(p1[ci], p2[cj], lat, D / H, s.phantom_margin_mm, D)
+    if suspect.any():
+        # labels may be wrong here (a row end hidden by an obstacle looks like the lattice
+        # end), so the floor reading is looked for among all candidates, labels ignored
+        keep_h = _unambiguous(l1, p1[:, 1], p2[:, 1], i0, j0, ci, cj, suspect, sb, (-2.0,), D / H)
+        ci, cj = ci[keep_h], cj[keep_h]
+    # under the floor: deeper than dropoff_min_mm and than 5 σ of the disparity's scatter
+    under = max(D / H - D / (H + s.dropoff_min_mm), 5.0 * math.sqrt(2.0) * sigma_px / f)
+    keep_d = _dropoff_supported(p1[ci], p2[cj], lat, D / H - under)
+    return ci[keep_d], cj[keep_d]
+
+
+def _dropoff_supported(
+    q1: NDArray[np.float64],
+    q2: NDArray[np.float64],
+    lat: LaserLattice,
+    under_disp: float,
+) -> NDArray[np.bool_]:
+    """Which pairs to keep: a pair read under the floor (disparity D/Z below ``under_disp``)
+    needs a neighbour that agrees.
+
+    ``q1``, ``q2`` are the ray slopes (X/Z, Y/Z) of each pair's dots. A real drop-off is a
+    surface: the next ray of its laser row or the same ray of the next row lands on it too, at
+    a disparity within 0.3 lattice steps. A lone pair under the floor is a dot whose true
+    partner is hidden, paired with the image of a nearer dot that lies just beside where the
+    partner would be (at the edge of an occluder): a phantom drop-off (a false stop), so it
+    is left unmatched.
+    """
+    keep = np.ones(len(q1), dtype=bool)
+    if len(q1) == 0:
+        return keep
+    disp = q1[:, 1] - q2[:, 1]  # D/Z
+    deep = disp < under_disp
+    if not deep.any():
+        return keep
+    row = np.rint((q1[:, 0] - lat.a0) / lat.step_a).astype(np.int64)
+    col = np.rint((0.5 * (q1[:, 1] + q2[:, 1]) - lat.b0) / lat.step_b).astype(np.int64)
+    width = int(col.max() - col.min()) + 3
+    key = (row - row.min() + 1) * width + (col - col.min() + 1)
+    order = np.argsort(key, kind="stable")
+    skey, sdisp = key[order], disp[order]
+    supported = np.zeros(len(q1), dtype=bool)
+    for off in (-1, 1, -width, width):
+        q = key + off
+        pos = np.clip(np.searchsorted(skey, q), 0, len(skey) - 1)
+        hit = (skey[pos] == q) & (np.abs(sdisp[pos] - disp) < 0.3 * lat.step_b)
+        hit &= sdisp[pos] < under_disp
+        supported |= hit
+    keep[deep & ~supported] = False
+    return keep
+
+
+def _floor_phantom_suspects(
+    q1: NDArray[np.float64],
+    q2: NDArray[np.float64],
+    lat: LaserLattice,
+    floor_disp: float,
+    margin_mm: float,
+    D: float,
+) -> NDArray[np.bool_]:
+    """Which pairs may be floor rows read two lattice steps off (phantom obstacles).
+
+    ``q1``, ``q2`` are the ray slopes (X/Z, Y/Z) of each pair's dots. A pairing of floor dots
+    shifted by two lattice steps reads as a flat surface at the depth where D/Z is the
+    floor's D/H plus two steps (SPEC §2: about 576 mm high on the default rig). Obstacles
+    stand on the floor, so along one laser column (rays of equal Y/Z) a dot of a farther row
+    (larger X/Z) cannot lie nearer (smaller X) than a dot of a nearer row: that ray would have
+    hit the obstacle under it. A pair at the floor's shifted depth that lies more than
+    ``margin_mm`` nearer than a dot of a lower row of its column is therefore the floor read
+    one step off on each camera, or a table top at that height over visible floor: which of
+    the two, the caller decides from the rest of the row (:func:`_unambiguous`).
+    """
+    out = np.zeros(len(q1), dtype=bool)
+    if len(q1) < 2:
+        return out
+    disp = q1[:, 1] - q2[:, 1]  # D/Z
+    z = D / np.maximum(disp, 1e-9)
+    x = q1[:, 0] * z  # forward distance X = (X/Z)·Z, mm
+    col = np.rint((0.5 * (q1[:, 1] + q2[:, 1]) - lat.b0) / lat.step_b).astype(np.int64)
+    row = np.rint((q1[:, 0] - lat.a0) / lat.step_a).astype(np.int64)
+    order = np.lexsort((row, col))
+    c_o, x_o = col[order], x[order]
+    grp = np.cumsum(np.concatenate([[True], c_o[1:] != c_o[:-1]])) - 1
+    big = float(np.max(np.abs(x_o))) * 4.0 + 1.0
+    run = np.maximum.accumulate(x_o + grp * big) - grp * big
+    prev = np.full(len(x_o), -np.inf)
+    same = np.concatenate([[False], grp[1:] == grp[:-1]])
+    prev[1:] = np.where(same[1:], run[:-1], -np.inf)
+    band = np.abs(disp[order] - floor_disp - 2.0 * lat.step_b) < 0.3 * lat.step_b
+    out[order] = band & (x_o < prev - margin_mm)
+    return out
+
+
+def _unambiguous(
+    row1: NDArray[np.int64],
+    e1: NDArray[np.float64],
+    e2: NDArray[np.float64],
+    cand_i: NDArray[np.intp],
+    cand_j: NDArray[np.intp],
+    ci: NDArray[np.intp],
+    cj: NDArray[np.intp],
+    free: NDArray[np.bool_],
+    sb: float,
+    shifts: tuple[float, ...] = (-2.0, 2.0),
+    floor_disp: float | None = None,
+) -> NDArray[np.bool_]:
+    """Which chosen pairs to keep: runs of unlabelled pairs whose pairing is ambiguous go.
+
+    A run is a stretch of chosen pairs marked ``free`` (here: no lattice label on its dots, or
+    a phantom suspect) along one laser row, in camera-1 column order, with a continuous
+    disparity (steps below half a lattice step). Pairing every camera-1 dot of the run (and of the one lattice step beyond each end)
+    with the camera-2 dot two lattice steps over instead (disparity + each of ``shifts``
+    steps: the same laser rays, another flat surface, SPEC §2) is its shifted reading. When the shifted reading is
+    made of valid candidates, uses no dot of another chosen pair and pairs at least as many
+    dots as the run, nothing in the row tells the two apart (the floor-first and smoothness
+    preferences are guesses): the run is refused. With ``floor_disp`` (D/H), a run with floor
+    pairs on both sides in its row is kept. An unmatched dot is safe; a whole row one
+    lattice step off is a phantom obstacle (or a real one read as floor).
+    """
+    keep = np.ones(len(ci), dtype=bool)
+    disp_c = e1[ci] - e2[cj]
+    disp_a = e1[cand_i] - e2[cand_j]
+    used1 = np.zeros(len(e1), dtype=bool)
+    used2 = np.zeros(len(e2), dtype=bool)
+    used1[ci] = True
+    used2[cj] = True
+    order = np.lexsort((e1[ci], row1[ci]))
+    r_o, d_o, f_o = row1[ci][order], disp_c[order], free[order]
+    brk = np.ones(len(order), dtype=bool)
+    brk[1:] = (r_o[1:] != r_o[:-1]) | (np.abs(d_o[1:] - d_o[:-1]) > 0.5 * sb)
+    if floor_disp is not None:
+        # a suspect frees the pairs of its stretch of continuous disparity that lie at the
+        # floor's shifted depth too: the ends of a row read one step off are no surer than its
+        # middle (their neighbours beyond are hidden), but a real surface beside it stays
+        seg = np.cumsum(brk) - 1
+        band = np.abs(d_o - floor_disp - 2.0 * sb) < 0.3 * sb
+        f_o = f_o | (band & (np.bincount(seg, weights=f_o.astype(np.float64))[seg] > 0))
+    brk[1:] |= f_o[1:] != f_o[:-1]
+    run_id = np.cumsum(brk) - 1
+    cand_row = row1[cand_i]
+    # a suspect run's shifted reading may lose a dot at each end to the pairs beside it
+    slack_ends = 1 if floor_disp is not None else 0
+    for rid in np.unique(run_id[f_o]):
+        at = np.flatnonzero(run_id == rid)
+        members = order[at]
+        if floor_disp is not None and at[0] > 0 and at[-1] < len(order) - 1:
+            # floor pairs on both sides in the row: a surface standing out of the floor (its
+            # edges show as a gap and a merged dot), not the floor read one step off
+            nb = order[[at[0] - 1, at[-1] + 1]]
+            if (row1[ci[nb]] == row1[ci[members[0]]]).all() and (
+                np.abs(disp_c[nb] - floor_disp) < 0.3 * sb
+            ).all():
+                continue
+        ri, rj = ci[members], cj[members]
+        row = row1[ri[0]]
+        lo, hi = e1[ri].min() - 1.3 * sb, e1[ri].max() + 1.3 * sb
+        xs = np.argsort(e1[ri])
+        near = (cand_row == row) & (e1[cand_i] >= lo) & (e1[cand_i] <= hi)
+        if not near.any():
+            continue
+        ni, nj, nd = cand_i[near], cand_j[near], disp_a[near]
+        d_ref = np.interp(e1[ni], e1[ri][xs], disp_c[members][xs])
+        own1 = np.isin(ni, ri)
+        own2 = np.isin(nj, rj)
+        avail = (own1 | ~used1[ni]) & (own2 | ~used2[nj])
+        for shift in shifts:
+            alt = avail & (np.abs(nd - d_ref - shift * sb) < 0.3 * sb)
+            if not alt.any():
+                continue
+            n_alt = min(len(np.unique(ni[alt])), len(np.unique(nj[alt])))
+            if n_alt >= len(ri) - slack_ends:
+                keep[members] = False
+                break
+    return keep
 
 
 def _anchor_labels(
@@ -405,12 +600,17 @@ def _anchor_labels(
     lat: LaserLattice,
     s: MatchSettings,
     double: NDArray[np.bool_],
+    walk_tol: float,
 ) -> NDArray[np.int64]:
     """Laser ray index of each dot implied by the ends of its laser row, or ``_NO_RAY``.
 
     Where one ray step beyond a row's outermost dot still lies well inside the mirror disk, a dot
     there would have been seen, so the outermost dot is the end of the laser lattice (ray
-    ``cols[0]`` on the left, ``cols[1]`` on the right). Counting lattice steps inward along the
+    ``cols[0]`` on the left, ``cols[1]`` on the right) — unless it is hidden: an occluder's edge
+    (a partition beside a gap) can hide the end ray from one camera only, and then a
+    neighbouring row shows a dot one step beyond (the lattice goes on there at about the same
+    depth); such an end is no anchor (taking it was a whole row one ray off in that camera,
+    and with the other camera's end hidden the other way, a row read two steps off: SPEC §2). Counting lattice steps inward along the
     row (while the spacing stays a whole number of steps, i.e. the depth does not jump) gives
     the ray of each dot. Rows whose two ends disagree get no labels.
     """
@@ -432,7 +632,7 @@ def _anchor_labels(
     inc = np.rint(step)
     # The walk stops at a gap (a missing dot, or a depth jump of whole lattice steps) and at a
     # double-bright dot (two dots on top of each other: a surface one step nearer).
-    bad = ~start & ((np.abs(step - inc) > 0.25) | (inc != 1))
+    bad = ~start & ((np.abs(step - inc) > walk_tol) | (inc != 1))
     dbl = double[ids]
     bad |= dbl
     bad[1:] |= dbl[:-1] & ~start[1:]
@@ -444,8 +644,22 @@ def _anchor_labels(
         xyz = np.column_stack([a[idx], e[idx] + direction * sb + cam.y_mm, np.ones(len(idx))])
         return cam.in_disk(cam.project(xyz), margin_px=s.anchor_margin_px)
 
-    has_l = beyond_inside(first, -1.0)[g]
-    has_r = beyond_inside(last, +1.0)[g]
+    # A neighbouring row with a dot one step beyond this row's end (±0.3 step: about the same
+    # depth) shows the lattice going on there: this row's next dot is hidden, not missing.
+    e0, span = e.min() - 2.0 * sb, e.max() - e.min() + 4.0 * sb
+    key = L * 2.0 + (e - e0) / span  # ascending, like the dots: by row, then column slope
+
+    def hidden_beyond(idx: NDArray[np.intp], direction: float) -> NDArray[np.bool_]:
+        hit = np.zeros(len(idx), dtype=bool)
+        for dr in (-1, 1):
+            at = e[idx] + direction * sb - e0
+            lo = (L[idx] + dr) * 2.0 + (at - 0.3 * sb) / span
+            hi = (L[idx] + dr) * 2.0 + (at + 0.3 * sb) / span
+            hit |= np.searchsorted(key, hi, side="right") > np.searchsorted(key, lo, side="left")
+        return hit
+
+    has_l = (beyond_inside(first, -1.0) & ~hidden_beyond(first, -1.0))[g]
+    has_r = (beyond_inside(last, +1.0) & ~hidden_beyond(last, +1.0))[g]
     k_l = lat.cols[0] + (csum - csum[first][g])
     ok_l = has_l & (bcum - bcum[first][g] == 0)
     k_r = lat.cols[1] - (csum[last][g] - csum)

@@ -41,8 +41,21 @@ from omnid.daemon.motion import MotionController, Odometry
 from omnid.daemon.rider import JoystickSample, RiderDemand, RiderMux, TiltSample
 from omnid.daemon.safety import Reason, ReasonLog, SafetyDecision, SafetyLayer
 from omnid.devices.control_unit import WheelCommand
+from omnid.devices.cu_codec import (
+    FAULT_OVERCURRENT_LEFT,
+    FAULT_OVERCURRENT_RIGHT,
+    FAULT_UNDERVOLTAGE,
+    FAULT_WATCHDOG,
+)
 
 log = logging.getLogger(__name__)
+
+#: Control-unit fault bits that stop the chair (docs/protocol.md). RESET (first reply after
+#: power-up) and RX_ERROR (a rejected frame, which the unit ignored) are informational: the link's
+#: health and the unit's own watchdog already cover a bus that keeps failing.
+STOPPING_FAULTS = (
+    FAULT_WATCHDOG | FAULT_OVERCURRENT_LEFT | FAULT_OVERCURRENT_RIGHT | FAULT_UNDERVOLTAGE
+)
 
 
 class StatusSample(Protocol):
@@ -239,9 +252,10 @@ class ControlCore:
             st is None
             or not self.link_ok
             or now_s - st.timestamp_s > cfg.control.status_timeout_s
-            or st.faults
+            or st.faults & STOPPING_FAULTS
         ):
-            reason = "status_stale" if st is None or not st.faults else "control_unit_fault"
+            stopping = 0 if st is None else st.faults & STOPPING_FAULTS
+            reason = "control_unit_fault" if stopping else "status_stale"
             code = Reason.STATUS_STALE if reason == "status_stale" else Reason.FAULT
             self._log.log(reason, "no valid control-unit status; wheels stopped", now_s)
             if st is not None:  # start-up (no status yet) needs no re-arming

@@ -136,11 +136,11 @@ class StereoFrameSource:
             img1, img2, t_s = await asyncio.wait_for(
                 self._read_pair_async(), self.settings.timeout_s
             )
-        except TimeoutError:
+        except TimeoutError as exc:
             self.timeouts += 1
             raise DeviceTimeout(
                 f"{self.name}: no frames within {self.settings.timeout_s:g} s"
-            ) from None
+            ) from exc
         self.frames_read += 1
         return img1, img2, t_s
 
@@ -154,11 +154,11 @@ class StereoFrameSource:
             # an overrunning grab still holds the device; wait for it (bounded)
             try:
                 await asyncio.wait_for(asyncio.shield(self._pending), self.settings.timeout_s)
-            except TimeoutError:
+            except TimeoutError as exc:
                 self.timeouts += 1
                 raise DeviceTimeout(
                     f"{self.name}: flush waited {self.settings.timeout_s:g} s"
-                ) from None
+                ) from exc
             self._pending = None
         loop = asyncio.get_running_loop()
         if self._executor is None:
@@ -166,12 +166,12 @@ class StereoFrameSource:
         fut = loop.run_in_executor(self._executor, self._flush_blocking)
         try:
             await asyncio.wait_for(asyncio.shield(fut), self.settings.timeout_s * 2)
-        except TimeoutError:
+        except TimeoutError as exc:
             self.timeouts += 1
             self._pending = fut
             raise DeviceTimeout(
                 f"{self.name}: flush took over {self.settings.timeout_s * 2:g} s"
-            ) from None
+            ) from exc
 
     async def close(self) -> None:
         """Release devices and the worker thread; further reads raise DeviceClosed."""

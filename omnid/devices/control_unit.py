@@ -100,6 +100,23 @@ class ControlUnitStatus:
     def fault_names(self) -> tuple[str, ...]:
         return codec.fault_names(self.faults)
 
+    @classmethod
+    def from_reply(
+        cls, rep: codec.ReplyFrame, left_clocks: int, right_clocks: int, timestamp_s: float
+    ) -> ControlUnitStatus:
+        """The status a decoded reply gives, with clock counters already unwrapped."""
+        return cls(
+            seq=rep.seq,
+            left_clocks=left_clocks,
+            right_clocks=right_clocks,
+            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
+            faults=rep.faults,
+            timestamp_s=timestamp_s,
+            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
+            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
+            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
+        )
+
 
 @dataclass(frozen=True)
 class ControlUnitSettings:
@@ -162,6 +179,7 @@ class ControlUnitHealth:
     crc_errors: int = 0
     malformed: int = 0
     seq_errors: int = 0
+    late_bytes_discarded: int = 0
     port_errors: int = 0
     reconnects: int = 0
     consecutive_missed: int = 0
@@ -256,8 +274,23 @@ class ControlUnitLink:
 
     @property
     def status(self) -> ControlUnitStatus | None:
-        """The latest status while the link is healthy; ``None`` when it is not (stop the chair)."""
-        return self._status if self._health.healthy else None
+        """The latest status while the link is healthy; ``None`` when it is not (stop the chair).
+
+        Also ``None`` (logged once) when the link task is not running or the newest reply is
+        older than ``unit_watchdog_s`` — by then the unit has stopped the motors by itself — so a
+        stuck or dead task cannot leave a stale status looking healthy.
+        """
+        st = self._status
+        if st is None or not self._health.healthy:
+            return None
+        age_s = time.monotonic() - st.timestamp_s
+        if self._task is None or self._task.done():
+            self._set_unhealthy("link task not running")
+            return None
+        if age_s > self.settings.unit_watchdog_s:
+            self._set_unhealthy(f"newest reply {age_s * 1000:.0f} ms old (link task stuck?)")
+            return None
+        return st
 
     @property
     def last_status(self) -> ControlUnitStatus | None:
@@ -267,6 +300,7 @@ class ControlUnitLink:
     @property
     def health(self) -> ControlUnitHealth:
         """A snapshot of connection state, last reply age and error counters."""
+        self.status  # noqa: B018 - applies the task/age rule to ``healthy``
         h = self._health.copy()
         if self._last_reply_t is not None:
             h.last_reply_age_s = time.monotonic() - self._last_reply_t
@@ -314,17 +348,7 @@ class ControlUnitLink:
         h.replies_ok += 1
         h.consecutive_missed = 0
         self._last_reply_t = now
-        self._status = ControlUnitStatus(
-            seq=rep.seq,
-            left_clocks=self._unwrapped[0],
-            right_clocks=self._unwrapped[1],
-            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
-            faults=rep.faults,
-            timestamp_s=now,
-            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
-            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
-            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
-        )
+        self._status = ControlUnitStatus.from_reply(rep, *self._unwrapped, now)
         if not h.healthy:
             h.healthy = True
             log.info("control unit link healthy (seq %d)", rep.seq)
@@ -369,7 +393,6 @@ class ControlUnitLink:
                     if ever_connected:
                         self._health.reconnects += 1
                     ever_connected = True
-                    backoff = s.reconnect_initial_s
                     next_t = loop.time()
                 else:
                     await self._sleep(backoff)
@@ -379,11 +402,21 @@ class ControlUnitLink:
                 await self._exchange(loop)
             except DeviceError as exc:
                 self._drop_transport(f"port error: {exc}")
+                # back off before reopening: a port that opens but fails at once must not
+                # spin the event loop
+                await self._sleep(backoff)
+                backoff = min(backoff * 2, s.reconnect_max_s)
                 continue
             except Exception as exc:  # a bug must not leave the unit without a stop decision
                 log.exception("control unit link: unexpected error")
                 self._drop_transport(f"internal error: {exc!r}")
+                # back off before reopening: a port that opens but fails at once must not
+                # spin the event loop
+                await self._sleep(backoff)
+                backoff = min(backoff * 2, s.reconnect_max_s)
                 continue
+            if self._health.consecutive_missed == 0:
+                backoff = s.reconnect_initial_s  # the device answered: a fresh back-off
             next_t += s.command_period_s
             delay = next_t - loop.time()
             if delay < -s.command_period_s:  # overran (loop blocked): restart the grid
@@ -392,7 +425,9 @@ class ControlUnitLink:
             await self._sleep(max(delay, 0.0))
 
     async def _sleep(self, delay_s: float) -> None:
-        # cleared after waking, so a wake-up set during an exchange is not lost
+        # cleared after waking, so a wake-up set during an exchange (urgent command) is not lost
+        if self._stopping:
+            return
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(delay_s):
                 await self._wake.wait()
@@ -403,6 +438,10 @@ class ControlUnitLink:
         t = self._transport
         assert t is not None
         h = self._health
+        # Half duplex: whatever is still in the input is a late (part of a) reply to an earlier
+        # command. Drop it, so that its tail cannot be parsed as a CRC error against this command.
+        h.late_bytes_discarded += t.reset_input()
+        self._parser.reset()
         frame = self._next_frame()
         seq = frame.seq
         await t.write(codec.encode_command(frame))

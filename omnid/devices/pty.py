@@ -120,7 +120,11 @@ class PtyPort:
             self._thread = None
             self._stop.set()
         if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=1.0)
+            # The reader wakes every 50 ms to check ``stop``; the long bound is for a loaded
+            # machine. Closing the fd under a live reader could hand it a reused fd number.
+            thread.join(timeout=10.0)
+            if thread.is_alive():
+                log.warning("%s: reader thread did not stop within 10 s", self._name)
         with self._lock:  # writers hold the lock, so no fd is closed under them
             for fd in (self._master, self._slave):
                 if fd is not None:

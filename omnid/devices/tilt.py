@@ -316,7 +316,6 @@ class TiltSensorLink:
                     if ever_connected:
                         self._health.reconnects += 1
                     ever_connected = True
-                    backoff = s.reconnect_initial_s
                     next_t = loop.time()
                 else:
                     self.latest  # noqa: B018 - logs the stale transition while disconnected
@@ -327,12 +326,22 @@ class TiltSensorLink:
                 await self._exchange(loop)
             except DeviceError as exc:
                 self._drop_transport(str(exc))
+                # back off before reopening: a port that opens but fails at once must not
+                # spin the event loop
+                await self._sleep(backoff)
+                backoff = min(backoff * 2, s.reconnect_max_s)
                 continue
             except Exception as exc:  # a bug must not leave a stale reading looking valid
                 log.exception("tilt sensor link: unexpected error")
                 self._drop_transport(f"internal error: {exc!r}")
+                # back off before reopening: a port that opens but fails at once must not
+                # spin the event loop
+                await self._sleep(backoff)
+                backoff = min(backoff * 2, s.reconnect_max_s)
                 continue
             self.latest  # noqa: B018 - logs the stale transition even if nobody asks
+            if self._health.consecutive_timeouts == 0:
+                backoff = s.reconnect_initial_s  # the device answered: a fresh back-off
             next_t += s.poll_period_s
             delay = next_t - loop.time()
             if delay < -s.poll_period_s:  # overran (loop blocked): restart the grid
@@ -342,6 +351,8 @@ class TiltSensorLink:
 
     async def _sleep(self, delay_s: float) -> None:
         self._wake.clear()
+        if self._stopping:  # stop() may have set the wake-up before we cleared it
+            return
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(delay_s):
                 await self._wake.wait()

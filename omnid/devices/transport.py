@@ -132,11 +132,17 @@ class Transport:
         self._check_open()
         await self._write_raw(bytes(data))
 
-    def reset_input(self) -> None:
-        """Discard whatever has been received and not yet read."""
+    def reset_input(self) -> int:
+        """Discard whatever has been received and not yet read; returns how many bytes that was.
+
+        Never blocks (it reads only what is already there). A link that is gone is left for the
+        next read or write to report.
+        """
+        dropped = 0
         with contextlib.suppress(DeviceError):
-            while self._read_available(_READ_CHUNK):
-                pass
+            while chunk := self._read_available(_READ_CHUNK):
+                dropped += len(chunk)
+        return dropped
 
     def close(self) -> None:
         """Close the link; later reads and writes raise :class:`DeviceClosed`. Idempotent."""

@@ -3,28 +3,28 @@
 World frame (``omnid.sim.world``): x, y on the floor with y to the left, mm. The chair starts at
 the origin facing +x. Layout, seen from above (x up the page)::
 
-    x = 5500  ───────────── wall ──────────────
-              ░░░░░░░ stairs down 170 mm ░░░░│      (drop-off x 3900–5500, y −2200…600)
-    x = 3900  ░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░░│
-                                   [box 3]      (x 2700–3100, y 1000–1400, 300 mm tall)
-    x = 2000  ═══════ ═══ wide ═══ narrow ═══   partition x 1900–2000; wide gap y −550…550
-                                                  (1100 mm), narrow gap y 1250…1700 (450 mm)
-              [box 2]                           (x 1300–1700, y −1100…−600, 600 mm)
-                          [box 1]               (x 800–1200, y 550…950, 400 mm)
+    x = 6000  ───────────── wall ──────────────
+    x = 3900  ═════════════ narrow ════════════   partition B x 3800–3900, narrow gap y −225…225
+                  [box 3]                         (x 2100–2400, y −1100…−700, 500 mm tall)
+      ░░stairs down 170 mm░░                      (drop-off x 2000–3800, y −2200…−1700)
+    x = 2000  ═════════════ wide ══════════════   partition A x 1900–2000, wide gap y −550…550
+              [box 2]                             (x 1300–1700, y −1100…−600, 600 mm)
+                          [box 1]                 (x 800–1200, y 550…950, 400 mm)
     x = 0            chair ▲ (start)
     x = −1300 ───────────── wall ──────────────
               y = −2200 (right)        y = +2200 (left)
 
 The chair (700 mm wide, plus the daemon's 50 mm margin on a 50 mm map grid) fits through the
-wide gap but not the narrow one; driving straight on
-from the start leads through the wide gap towards the stairs, which the daemon must refuse.
+wide gap but not the narrow one; driving straight on from the start leads through the wide gap
+to the narrow one, which the daemon must refuse; to the right of that room are the stairs, and
+box 3 stands beside the way to them (the demo story: :func:`omnid.sim.story.demo_story`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from omnid.sim.rider import HeadScript, JoystickScript, KeyScript, head_script
+from omnid.sim.rider import HeadScript, KeyScript, head_script
 from omnid.sim.world import Box, DropOff, World
 
 WALL_MM = 100.0
@@ -134,28 +134,6 @@ def demo_rider() -> HeadScript:
             ("neutral", 1.0),
         ]
     )
-
-
-DEMO_STORY = (
-    (1.0, 1.0, 0.0, "forward through the wide passage towards the narrow one"),
-    (26.0, 0.0, 0.0, "rest"),
-    (27.0, -1.0, 0.0, "back away from the narrow passage"),
-    (29.5, 0.0, 0.0, "rest"),
-    (30.5, 0.0, -1.0, "turn right, towards the stairs"),
-    (35.0, 0.0, 0.0, "rest"),
-    (37.0, 1.0, 0.0, "forward towards the stairs"),
-    (50.0, 0.0, 0.0, "rest"),
-    (52.0, 0.0, -1.0, "turn right, towards box 3 (seen on the way, now beside the chair)"),
-    (60.0, 0.0, 0.0, "rest"),
-)
-
-
-def demo_joystick() -> JoystickScript:
-    """The demo's rider on the joystick (the only input that can back away): forward through
-    the wide passage until the narrow one refuses, back off, turn right, forward until the
-    stairs refuse, then turn right towards box 3, which the laser no longer sees — refused from
-    the map. Moves: :data:`DEMO_STORY` ``(t_s, forward, turn, what)``."""
-    return JoystickScript(tuple((t, f, w) for t, f, w, _ in DEMO_STORY))
 
 
 def demo_keys() -> KeyScript:

@@ -29,6 +29,7 @@ _BGR = {
     "obstacle": (30, 30, 230),
     "dropoff": (0, 140, 255),
     "refusal": (200, 0, 200),
+    "end": (120, 40, 0),
     "contact": (0, 0, 0),
     "text": (40, 40, 40),
 }
@@ -37,12 +38,15 @@ _BGR = {
 class _Canvas:
     """World mm → image px (x up the page, y to the left), with a margin for the legend."""
 
-    def __init__(self, course: Course, px_per_mm: float, margin_px: int = 30) -> None:
+    def __init__(
+        self, course: Course, px_per_mm: float, margin_px: int = 30, extra_px: int = 0
+    ) -> None:
         self.s = px_per_mm
         self.m = margin_px
         (self.x0, self.x1), (self.y0, self.y1) = course.x_range_mm, course.y_range_mm
         self.w = math.ceil((self.y1 - self.y0) * self.s) + 2 * margin_px
-        self.h = math.ceil((self.x1 - self.x0) * self.s) + 2 * margin_px + 60
+        self.map_h = math.ceil((self.x1 - self.x0) * self.s) + 2 * margin_px
+        self.h = self.map_h + 60 + extra_px
         self.img = np.full((self.h, self.w, 3), 235, np.uint8)
 
     def px(self, xy_mm: NDArray[np.float64]) -> NDArray[np.int32]:
@@ -65,8 +69,11 @@ def draw_run(
     """Write the top-down PNG of ``result`` in ``course`` to ``path``; returns the path."""
     import cv2
 
-    cv = _Canvas(course, px_per_mm)
+    groups = refusal_groups(result)
+    shown = groups[:_MAX_GROUPS]
+    cv = _Canvas(course, px_per_mm, extra_px=40 + 18 * (len(shown) + (len(groups) > len(shown))))
     img = cv.img
+    font = cv2.FONT_HERSHEY_SIMPLEX
     cv2.fillPoly(img, [cv.rect(cv.x0, cv.x1, cv.y0, cv.y1)], _BGR["floor"])
     for d in course.world.dropoffs:
         poly = cv.rect(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm)
@@ -90,44 +97,114 @@ def draw_run(
     if len(traj):
         chair.x_mm, chair.y_mm, chair.theta_rad = traj[0, 1:4]
         cv2.polylines(img, [cv.px(chair.footprint())], True, _BGR["start"], 2)
-        cv2.polylines(img, [cv.px(traj[:, 1:3])], False, _BGR["path"], 2)
         chair.x_mm, chair.y_mm, chair.theta_rad = traj[-1, 1:4]
-        cv2.polylines(img, [cv.px(chair.footprint())], True, _BGR["path"], 2)
-        for t, _ in result.refusals:
-            i = min(int(np.searchsorted(traj[:, 0], t)), len(traj) - 1)
-            c, r = cv.px(traj[i, 1:3])[0]
-            cv2.circle(img, (int(c), int(r)), 7, _BGR["refusal"], 2)
-        for t, _ in result.contacts:
-            i = min(int(np.searchsorted(traj[:, 0], t)), len(traj) - 1)
-            c, r = cv.px(traj[i, 1:3])[0]
-            cv2.drawMarker(img, (int(c), int(r)), _BGR["contact"], cv2.MARKER_TILTED_CROSS, 18, 3)
-
-    font = cv2.FONT_HERSHEY_SIMPLEX
+        cv2.polylines(img, [cv.px(chair.footprint())], True, _BGR["end"], 2)
+        cv2.polylines(img, [cv.px(traj[:, 1:3])], False, _BGR["path"], 3)
+    # Course labels above the dots, on a white card, so they stay readable.
     for text, x, y in course.labels:
         c, r = cv.px(np.array([[x, y]]))[0]
-        size = cv2.getTextSize(text, font, 0.4, 1)[0]
-        cv2.putText(img, text, (int(c - size[0] / 2), int(r + 4)), font, 0.4, _BGR["text"], 1)
+        _label(img, text, int(c), int(r), centre=True)
+    # Refusals: one numbered ring per place and reason, explained under the map.
+    placed: list[tuple[int, int]] = []
+    for n, (x, y, _, _) in enumerate(shown, 1):
+        c, r = (int(v) for v in cv.px(np.array([[x, y]]))[0])
+        cv2.circle(img, (c, r), 8, _BGR["refusal"], 2)
+        dx = 12 + 22 * sum(1 for p in placed if abs(p[0] - c) < 20 and abs(p[1] - r) < 20)
+        placed.append((c, r))
+        _label(img, str(n), c + dx, r, color=_BGR["refusal"], scale=0.5, thick=2)
+    for t, _ in result.contacts:
+        i = min(int(np.searchsorted(traj[:, 0], t)), len(traj) - 1)
+        c, r = cv.px(traj[i, 1:3])[0]
+        cv2.drawMarker(img, (int(c), int(r)), _BGR["contact"], cv2.MARKER_TILTED_CROSS, 18, 3)
+
     legend = [
         ("path", "path"),
-        ("start", "start"),
+        ("start", "chair at start"),
+        ("end", "at end"),
         ("obstacle", "obstacle seen"),
         ("dropoff", "drop-off seen"),
-        ("refusal", "refusal"),
+        ("refusal", "refused (n)"),
         ("contact", "collision/fall"),
     ]
-    y = cv.h - 40
+    y = cv.map_h + 8
     x = 10
     for key, text in legend:
+        if x + 18 + cv2.getTextSize(text, font, 0.42, 1)[0][0] > cv.w - 5:  # wrap the legend
+            x, y = 10, y + 18
         cv2.circle(img, (x + 5, y), 5, _BGR[key], -1)
-        cv2.putText(img, text, (x + 14, y + 4), font, 0.4, _BGR["text"], 1)
-        x += 20 + cv2.getTextSize(text, font, 0.4, 1)[0][0] + 10
+        cv2.putText(img, text, (x + 13, y + 5), font, 0.42, _BGR["text"], 1, cv2.LINE_AA)
+        x += 18 + cv2.getTextSize(text, font, 0.42, 1)[0][0] + 8
     scale_px = round(1000 * cv.s)
-    cv2.line(img, (10, cv.h - 15), (10 + scale_px, cv.h - 15), _BGR["text"], 2)
-    cv2.putText(img, "1 m", (16 + scale_px, cv.h - 11), font, 0.4, _BGR["text"], 1)
+    y += 22
+    cv2.line(img, (10, y), (10 + scale_px, y), _BGR["text"], 2)
+    cv2.putText(img, "1 m", (16 + scale_px, y + 4), font, 0.42, _BGR["text"], 1, cv2.LINE_AA)
+    n_contacts = len(result.contacts)
+    verdict = (
+        f"{n_contacts} collision(s)/fall(s)"
+        if n_contacts
+        else f"no contact, closest {result.min_clearance_mm:.0f} mm"
+    )
+    cv2.putText(img, f"{result.duration_s:.0f} s simulated, {verdict}", (30 + scale_px + 40, y + 4),
+                font, 0.42, _BGR["contact"] if n_contacts else _BGR["text"], 1, cv2.LINE_AA)  # fmt: skip
+    for n, (_, _, times, text) in enumerate(shown, 1):
+        y += 18
+        when = ", ".join(f"{t:.1f}" for t in times[:4]) + (", ..." if len(times) > 4 else "")
+        line = f"{n}  t = {when} s: {text}"
+        cv2.putText(img, line, (10, y + 4), font, 0.42, _BGR["refusal"], 1, cv2.LINE_AA)
+    if len(groups) > len(shown):
+        y += 18
+        more = f"... {len(groups) - len(shown)} more places (report.md lists every refusal)"
+        cv2.putText(img, more, (10, y + 4), font, 0.42, _BGR["text"], 1, cv2.LINE_AA)
     out = Path(path)
     if not cv2.imwrite(str(out), img):
         raise OSError(f"{out}: cannot write the PNG")
     return out
+
+
+_MAX_GROUPS = 8
+
+
+def refusal_groups(
+    result: SimResult, near_mm: float = 150.0
+) -> list[tuple[float, float, list[float], str]]:
+    """Refusals grouped by place and text: ``(x_mm, y_mm, times_s, text)`` in order of first
+    occurrence; a refusal joins a group with the same text whose place is within ``near_mm``."""
+    traj = result.trajectory
+    groups: list[tuple[float, float, list[float], str]] = []
+    if not len(traj):
+        return groups
+    for t, text in result.refusals:
+        i = min(int(np.searchsorted(traj[:, 0], t)), len(traj) - 1)
+        x, y = float(traj[i, 1]), float(traj[i, 2])
+        for gx, gy, times, gtext in groups:
+            if gtext == text and math.hypot(gx - x, gy - y) <= near_mm:
+                times.append(t)
+                break
+        else:
+            groups.append((x, y, [t], text))
+    return groups
+
+
+def _label(
+    img: NDArray[np.uint8],
+    text: str,
+    c: int,
+    r: int,
+    centre: bool = False,
+    color: tuple[int, int, int] = _BGR["text"],
+    scale: float = 0.42,
+    thick: int = 1,
+) -> None:
+    """``text`` at column ``c``, row ``r`` (left end, or centre) on a white card."""
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    (w, h), base = cv2.getTextSize(text, font, scale, thick)
+    x0 = c - w // 2 if centre else c
+    y0 = r + h // 2
+    cv2.rectangle(img, (x0 - 3, y0 - h - 3), (x0 + w + 3, y0 + base), (255, 255, 255), -1)
+    cv2.rectangle(img, (x0 - 3, y0 - h - 3), (x0 + w + 3, y0 + base), (190, 190, 190), 1)
+    cv2.putText(img, text, (x0, y0), font, scale, color, thick, cv2.LINE_AA)
 
 
 def summary_lines(result: SimResult) -> list[str]:
@@ -150,34 +227,59 @@ def summary_lines(result: SimResult) -> list[str]:
     return lines
 
 
-def _x_at(traj: NDArray[np.float64], t_s: float) -> float:
-    i = min(int(np.searchsorted(traj[:, 0], t_s)), len(traj) - 1)
-    return float(traj[i, 1])
+#: The demo story's checked steps (:func:`omnid.sim.story.demo_story`): step, the reason its
+#: refusal must name, and where the thing refused stands in the built-in course — the refusal
+#: counts only if the chair stood within ``_NEAR_MM`` of it (not a phantom elsewhere).
+_NEAR_MM = 700.0
+
+
+def _near_narrow(pose: tuple[float, float, float]) -> tuple[bool, str]:
+    front = pose[0] + ChairSettings().footprint_front_mm * math.cos(pose[2])
+    gap = 3800.0 - front  # partition B's face
+    return 0.0 <= gap <= _NEAR_MM, f"footprint front {gap:.0f} mm before the narrow passage"
+
+
+def _near_stairs(pose: tuple[float, float, float]) -> tuple[bool, str]:
+    front = pose[1] + ChairSettings().footprint_front_mm * math.sin(pose[2])
+    gap = front - (-1700.0)  # the stairs' edge
+    return 0.0 <= gap <= _NEAR_MM, f"footprint front {gap:.0f} mm before the stairs' edge"
+
+
+def _near_box3(pose: tuple[float, float, float]) -> tuple[bool, str]:
+    dx = max(2100.0 - pose[0], 0.0, pose[0] - 2400.0)
+    dy = max(-1100.0 - pose[1], 0.0, pose[1] - (-700.0))
+    d = math.hypot(dx, dy)
+    reach = math.hypot(ChairSettings().footprint_front_mm, ChairSettings().footprint_width_mm / 2)
+    # the turn sweeps the front corners (radius ``reach``): refused within the stop line's reach
+    return d - reach <= 300.0, f"box 3 {d:.0f} mm from the axle (corner reach {reach:.0f} mm)"
+
+
+_CHECKED = (
+    ("on to the narrow passage", "narrow passage refused", "obstacle_stop", _near_narrow),
+    ("forward towards the stairs", "stopped before the stairs", "dropoff_stop", _near_stairs),
+    ("turn right, towards box 3", "turn towards box 3 refused", "obstacle_stop", _near_box3),
+)
 
 
 def story_checks(result: SimResult) -> list[tuple[str, bool, str]]:
-    """The demo's story, checked against the run: ``(step, happened, evidence)``. Times are
-    those of :data:`omnid.sim.course.DEMO_STORY`."""
-
-    def refused(t0: float, t1: float, reason: str) -> list[tuple[float, str]]:
-        return [(t, m) for t, m in result.refusals if t0 <= t < t1 and reason in m]
-
+    """The demo's story, checked against the run: ``(step, happened, evidence)``, from the
+    reactive rider's step records (:attr:`SimResult.story`): each refusal must have ended its
+    step, name the right reason and come where the thing refused stands."""
     traj = result.trajectory
     x_max = float(traj[:, 1].max()) if len(traj) else 0.0
     rear_mm = ChairSettings().footprint_rear_mm
     steps = [
         ("through the wide passage", x_max - rear_mm > 2000.0, f"axle reached x = {x_max:.0f} mm"),
     ]
-    for what, t0, t1, reason in (
-        ("narrow passage refused", 1.0, 27.0, "obstacle_stop"),
-        ("stopped before the stairs", 37.0, 50.0, "dropoff_stop"),
-        ("turn towards box 3 refused", 52.0, 60.0, "obstacle_stop"),
-    ):
-        hits = refused(t0, t1, reason)
-        if what.startswith("narrow"):  # only once through the wide passage
-            hits = [h for h in hits if _x_at(traj, h[0]) - rear_mm > 2000.0]
-        ev = f"t = {hits[0][0]:.2f} s: {hits[0][1]}" if hits else f"no {reason} in {t0}-{t1} s"
-        steps.append((what, bool(hits), ev))
+    records = {r.what: r for r in result.story}
+    for step, what, reason, near in _CHECKED:
+        rec = records.get(step)
+        if rec is None:
+            steps.append((what, False, f"step {step!r} never ended"))
+            continue
+        ok_place, place = near(rec.pose_mm_rad)
+        ok = rec.ended == "done" and reason in rec.evidence and ok_place
+        steps.append((what, ok, f"{rec.evidence}; {place}"))
     n = len(result.contacts)
     steps.append(
         (
@@ -207,6 +309,16 @@ def write_report(
         lines += ["## Story", ""]
         lines += [
             f"- [{'x' if ok else ' '}] {what} — {ev}" for what, ok, ev in story_checks(result)
+        ]
+        lines += [
+            "",
+            "The rider's steps (each ends when the rider sees it done, or times out):",
+            "",
+        ]
+        lines += ["| step | from | to | ended | how |", "| --- | --- | --- | --- | --- |"]
+        lines += [
+            f"| {r.what} | {r.t0_s:.1f} s | {r.t1_s:.1f} s | {r.ended} | {r.evidence} |"
+            for r in result.story
         ]
         lines.append("")
     lines += ["## Figures", "", *summary_lines(result), ""]

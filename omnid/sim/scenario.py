@@ -23,11 +23,13 @@ from omnid.errors import OmnidError
 log = logging.getLogger(__name__)
 
 
-def make_core(rig_x_offset_mm: float = 300.0, joystick: bool = False) -> Any:
+def make_core(
+    rig_x_offset_mm: float = 300.0, joystick: bool = False, tilt: bool | None = None
+) -> Any:
     """The daemon's ``ControlCore`` with its default configuration (``etc/omnid.yaml``
-    defaults), told where the simulated rig sits on the chair. ``joystick``: the rider uses a
-    joystick (``rider.joystick.enabled``) instead of the head-tilt sensor (a silent enabled
-    source would stop the chair)."""
+    defaults), told where the simulated rig sits on the chair. ``joystick``: the rider has a
+    joystick (``rider.joystick.enabled``); ``tilt``: and the head-tilt sensor (default: only
+    when there is no joystick — a silent enabled source would stop the chair)."""
     try:
         from omnid.daemon.config import OmnidConfig  # type: ignore[import-not-found,unused-ignore]
         from omnid.daemon.core import ControlCore  # type: ignore[import-not-found,unused-ignore]
@@ -41,12 +43,14 @@ def make_core(rig_x_offset_mm: float = 300.0, joystick: bool = False) -> Any:
         config,
         perception=dataclasses.replace(config.perception, rig_x_offset_mm=rig_x_offset_mm),
     )
-    if joystick:
+    if tilt is None:
+        tilt = not joystick
+    if joystick or not tilt:
         r = config.rider
         rider = dataclasses.replace(
             r,
-            tilt=dataclasses.replace(r.tilt, enabled=False),
-            joystick=dataclasses.replace(r.joystick, enabled=True),
+            tilt=dataclasses.replace(r.tilt, enabled=tilt),
+            joystick=dataclasses.replace(r.joystick, enabled=joystick),
         )
         config = dataclasses.replace(config, rider=rider)
     return ControlCore(config)
@@ -54,21 +58,26 @@ def make_core(rig_x_offset_mm: float = 300.0, joystick: bool = False) -> Any:
 
 def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int:
     """Fast-mode run of ``args`` (course, duration_s, perception, seed, out, quiet)."""
-    from omnid.sim.course import demo_joystick, get_course
+    from omnid.sim.course import get_course
     from omnid.sim.report import summary_lines, write_report
     from omnid.sim.simulator import SimSettings, Simulator
+    from omnid.sim.story import ReactiveRider, demo_story
 
     course = get_course(args.course)
-    joystick = None
+    rider: ReactiveRider | None = None
     notes = [f"Course `{course.name}`, perception `{args.perception}`, seed {args.seed}."]
     if controller is None:
-        controller = make_core(joystick=True)
-        joystick = demo_joystick()
+        controller = make_core(joystick=True, tilt=True)
+        rider = demo_story()
         notes.append(
-            "Driven by the daemon core (`ControlCore`) with the scripted demo rider on the "
-            "joystick: forward through the wide passage, the narrow passage (refused), back "
-            "off, turn right, forward to the stairs (refused), turn right towards box 3, seen "
-            "on the way and now beside the chair outside the laser's field (refused)."
+            "Driven by the daemon core (`ControlCore`) with a reactive demo rider who watches "
+            "what the chair does and moves on to the next step when it is done (or after the "
+            "step's timeout): head tilt forward through the wide passage and on until the "
+            "narrow passage is refused; back away on the joystick (the only input that can "
+            "reverse: the head-tilt commands have no 'back'); head tilt right, towards the "
+            "stairs; forward until the stairs are refused; right again, towards box 3, seen on "
+            "the way and now beside the chair outside the laser's field (refused from the map). "
+            "The run ends when the story does."
         )
     else:
         notes.append("Open loop: fixed duties, no daemon — the chair is unguarded.")
@@ -84,17 +93,17 @@ def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int
         )
 
     settings = SimSettings(perception=args.perception, seed=args.seed)
-    sim = Simulator(course, controller, settings=settings, joystick=joystick, progress=progress)
+    sim = Simulator(course, controller, settings=settings, rider=rider, progress=progress)
     if not args.quiet:
         print(f"{title}: {args.duration_s:.0f} s in course '{course.name}'", flush=True)
     result = sim.run(args.duration_s)
     path = write_report(
-        args.out, course, result, title, notes, sim.chair.settings, story=joystick is not None
+        args.out, course, result, title, notes, sim.chair.settings, story=rider is not None
     )
     for line in summary_lines(result):
         print(line.replace("- ", "  ", 1))
     print(f"report: {path}  (drawing: {path.parent / 'course.png'})")
-    if joystick is not None and (result.collisions or result.falls):
+    if rider is not None and (result.collisions or result.falls):
         print(
             "the simulated chair collided or fell: the daemon failed this course", file=sys.stderr
         )

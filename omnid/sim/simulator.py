@@ -48,6 +48,7 @@ from omnid.errors import OmnidError
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
 from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
+from omnid.sim.story import Observation, ReactiveRider, StepRecord
 from omnid.sim.world import RigMount, cast_laser, rig_to_world
 
 log = logging.getLogger(__name__)
@@ -78,6 +79,7 @@ class SimSettings:
     laser_timeout_s: float = 0.5  # perception waits this long for the laser to be reported
     frame_timeout_s: float = 1.0  # and this long for a camera frame
     record_seen: bool = True  # keep every non-floor point perception reported (off for soaks)
+    story_rest_s: float = 1.0  # a reactive rider's run ends this long after its story ended
 
     def __post_init__(self) -> None:
         for name in (
@@ -93,6 +95,7 @@ class SimSettings:
         require(self.perception_latency_s >= 0, "perception_latency_s", "must be ≥ 0")
         require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
         require(self.tilt_noise_deg >= 0, "tilt_noise_deg", "must be ≥ 0")
+        require(self.story_rest_s >= 0, "story_rest_s", "must be ≥ 0")
         for name in ("frame_interval_s", "laser_timeout_s", "frame_timeout_s"):
             require(getattr(self, name) > 0, name, "must be positive")
 
@@ -193,6 +196,20 @@ class SimResult:
     # (N, 3) t_s, left, right wheel surface speed mm/s, every physics tick
     faults: tuple[Fault, ...] = ()
     perception_errors: list[tuple[float, str]] = field(default_factory=list)
+    steps: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 7)))
+    # (M, 7) every control step: t_s, reason bit mask (bit i = reason_names[i]), x_mm, y_mm,
+    # theta_rad (true pose), mean wheel surface speed mm/s (true), rider's forward demand [-1, 1]
+    reason_names: tuple[str, ...] = ()
+    story: list[StepRecord] = field(default_factory=list)  # a reactive rider's steps
+
+    def reasons_at(self, i: int) -> list[str]:
+        """The reasons the controller gave at control step ``i`` (row of :attr:`steps`)."""
+        mask = int(self.steps[i, 1])
+        return [n for b, n in enumerate(self.reason_names) if mask >> b & 1]
+
+    def reason_mask(self, *names: str) -> int:
+        """The bit mask of ``names`` in :attr:`steps` (0 for a reason that never occurred)."""
+        return sum(1 << b for b, n in enumerate(self.reason_names) if n in names)
 
     def time_to_standstill(self, t0_s: float, speed_tol_mm_s: float = 1.0) -> float:
         """Seconds from ``t0_s`` until both wheels turn slower than ``speed_tol_mm_s`` (and stay
@@ -371,17 +388,7 @@ class EmulatedControlUnit:
         else:
             self._clocks = raw
         self._raw = raw
-        return ControlUnitStatus(
-            seq=rep.seq,
-            left_clocks=self._clocks[0],
-            right_clocks=self._clocks[1],
-            laser_on=bool(rep.state & codec.STATE_LASER_IS_ON),
-            faults=rep.faults,
-            timestamp_s=now_s,
-            left_applied_duty=rep.left_applied_pm / codec.DUTY_FULL_SCALE,
-            right_applied_duty=rep.right_applied_pm / codec.DUTY_FULL_SCALE,
-            drive_enabled=bool(rep.state & codec.STATE_DRIVE_ENABLED),
-        )
+        return ControlUnitStatus.from_reply(rep, *self._clocks, now_s)
 
     def advance(self, now_s: float, dt_s: float) -> None:
         """Let the emulator drive the plant up to ``now_s + dt_s``."""
@@ -490,17 +497,24 @@ class EmulatedTiltSensor:
     ``unplugged`` (the ``tilt_unplugged`` fault) stops all replies, as a pulled adapter does.
     """
 
-    def __init__(self, script: HeadScript, noise_deg: float = 0.0, seed: int = 0) -> None:
+    def __init__(
+        self, script: HeadScript | ReactiveRider, noise_deg: float = 0.0, seed: int = 0
+    ) -> None:
         from omnid.devices import gs311_codec as codec
-        from omnid.devices.emulators.gs311 import Gs311Emulator
+        from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
         from omnid.devices.tilt import TiltReading, TiltSettings
 
         self._t = 0.0
         self._codec = codec
         self._reading = TiltReading
         fmt = TiltSettings().format
+        motion: HeadMotion | list[tuple[float, float, float]]
+        if isinstance(script, ReactiveRider):
+            motion = _live_head(HeadMotion, script)
+        else:
+            motion = script.as_list()
         self.emulator = Gs311Emulator(
-            script.as_list(), fmt=fmt, noise_deg=noise_deg, seed=seed, clock=lambda: self._t
+            motion, fmt=fmt, noise_deg=noise_deg, seed=seed, clock=lambda: self._t
         )
         self.parser = codec.Gs311Parser(fmt)
         self.unplugged = False
@@ -520,10 +534,23 @@ class EmulatedTiltSensor:
         return self._reading(f.roll_deg, f.pitch_deg, now_s)
 
 
+def _live_head(base: Any, rider: ReactiveRider) -> Any:
+    """A ``HeadMotion`` (the GS311 emulator's script) that reads a reactive rider's head."""
+
+    class LiveHead(base):
+        def __init__(self) -> None:
+            super().__init__([(0.0, 0.0, 0.0)])
+
+        def angles_at(self, t_s: float) -> tuple[float, float]:
+            return rider.angles_at(t_s)
+
+    return LiveHead()
+
+
 class DirectTiltSensor:
     """The head script's angles without the byte link (for probes and tests of the script)."""
 
-    def __init__(self, script: HeadScript) -> None:
+    def __init__(self, script: HeadScript | ReactiveRider) -> None:
         self.script = script
         self._reading = _tilt_reading_type()
         self.unplugged = False
@@ -531,7 +558,11 @@ class DirectTiltSensor:
     def poll(self, now_s: float) -> Any:
         if self.unplugged:
             return None
-        roll, pitch = self.script.at(now_s)
+        script = self.script
+        if isinstance(script, ReactiveRider):
+            roll, pitch = script.angles_at(now_s)
+        else:
+            roll, pitch = script.at(now_s)
         return self._reading(roll, pitch, now_s)
 
 
@@ -588,7 +619,7 @@ class Simulator:
         controller: Any,
         settings: SimSettings | None = None,
         chair_settings: ChairSettings | None = None,
-        rider: HeadScript | None = None,
+        rider: HeadScript | ReactiveRider | None = None,
         keys: KeyScript | None = None,
         mount: RigMount | None = None,
         rig: StereoRig | None = None,
@@ -604,7 +635,12 @@ class Simulator:
         self.chair = Chair(chair_settings, pose=course.start_pose)
         self.rider = rider
         self.keys = keys
-        self.joystick = joystick
+        self.joystick: JoystickScript | ReactiveRider | None = joystick
+        self.reactive = rider if isinstance(rider, ReactiveRider) else None
+        if self.reactive is not None:
+            if joystick is not None:
+                raise OmnidError("a reactive rider drives the joystick itself: give no joystick")
+            self.joystick = self.reactive
         self.mount = mount or RigMount()
         if rig is None:
             h = self.mount.height_mm
@@ -836,6 +872,8 @@ class Simulator:
         traj = np.full((n_ticks // k_rec + 2, 4), np.nan)
         speeds = np.full((n_ticks + 1, 3), np.nan)
         cmds = np.full((n_ticks // k_ctrl + 1, 5), np.nan)
+        steps = np.full((n_ticks // k_ctrl + 1, 7), np.nan)
+        reason_bits: dict[str, int] = {}
         n_traj = n_speed = n_cmd = 0
         contacts: list[tuple[float, Contact]] = []
         seen: list[NDArray[np.float64]] = []
@@ -865,6 +903,13 @@ class Simulator:
             now = k * dt
             self.now_s = now
             self._apply_faults(now)
+            if self.reactive is not None and k % k_tilt == 0:
+                if (
+                    self.reactive.done_s is not None
+                    and now >= self.reactive.done_s + s.story_rest_s
+                ):
+                    break  # the story has ended: so does the run
+                self.reactive.observe(Observation(now, self.chair.pose, self._speed()[0], refusals))
             if self.tilt is not None and k % k_tilt == 0:
                 reading = self.tilt.poll(now)
                 if reading is not None:
@@ -906,6 +951,12 @@ class Simulator:
                 ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
                 ctrl_max = max(ctrl_max, took_ctrl)
                 last_refusal = self._note_decision(now, refusals, last_refusal)
+                steps[n_cmd] = (
+                    now,
+                    self._reason_mask(reason_bits),
+                    *self.chair.pose,
+                    *self._speed(),
+                )
                 status = self.control_unit.exchange(command, now)
                 if status is not None:
                     self._last_status = status
@@ -977,7 +1028,30 @@ class Simulator:
             wheel_speeds=speeds[:n_speed].copy(),
             faults=self.faults,
             perception_errors=errors,
+            steps=steps[:n_cmd].copy(),
+            reason_names=tuple(sorted(reason_bits, key=reason_bits.__getitem__)),
+            story=list(self.reactive.log) if self.reactive is not None else [],
         )
+
+    def _reason_mask(self, bits: dict[str, int]) -> float:
+        """The controller's reasons of its last cycle as a bit mask; new names get new bits."""
+        report = getattr(self.controller, "last_report", None)
+        mask = 0
+        for r in getattr(report, "reasons", ()) if report is not None else ():
+            name = str(getattr(r, "value", r))
+            if name not in bits:
+                require(len(bits) < 52, "reasons", "more than 52 distinct reasons")
+                bits[name] = len(bits)
+            mask |= 1 << bits[name]
+        return float(mask)
+
+    def _speed(self) -> tuple[float, float]:
+        """Mean wheel surface speed (mm/s, true) and the rider's forward demand now."""
+        c = self.chair
+        report = getattr(self.controller, "last_report", None)
+        demand = getattr(report, "demand", None)
+        fwd = float(getattr(demand, "forward", 0.0)) if demand is not None else 0.0
+        return 0.5 * (c.left_speed_mm_s + c.right_speed_mm_s), fwd
 
     def _perception_cycle(
         self,

@@ -121,6 +121,64 @@ def test_each_dot_used_once_and_indices_consistent(rig, calib) -> None:
     np.testing.assert_array_equal(px[:, 2:], d2[j, :2])
 
 
+@pytest.fixture(scope="module")
+def sim_calib() -> tuple[StereoRig, Calibration]:
+    """The closed-loop simulator's installed rig: misaligned, calibrated on its floor capture."""
+    from omnid.sim.simulator import misaligned_rig as sim_rig
+
+    rig = sim_rig(H)
+    cap = render_capture(rig, DotPattern().on_plane(H), seed=7919)
+    return rig, calibrate_from_capture(cap, H, 200.0)
+
+
+# Where the closed-loop chair stopped for nothing before a 1300 mm gap (x ≈ 1198 mm), and poses
+# further back where the partition's edge hides a row's end ray from one camera (both cameras'
+# row ends then looked like the lattice end: whole floor rows read two lattice steps off, a
+# phantom obstacle 576 mm high) and where a dot whose partner is hidden was paired with the
+# image of a partition dot beside it (read ~150 mm under the floor: a phantom drop-off).
+@pytest.mark.parametrize("x_mm", [600.0, 750.0, 800.0, 1000.0, 1198.0])
+def test_best_sees_no_phantom_through_a_gap_in_a_partition(sim_calib, x_mm: float) -> None:
+    from omnid.core.triangulate import triangulate
+    from omnid.sim.course import walls
+    from omnid.sim.render import RenderOptions, render_camera_pair
+    from omnid.sim.world import Box, RigMount, World, cast_laser
+
+    rig, calib = sim_calib
+    world = World(
+        boxes=(
+            Box(1800.0, 1900.0, -2000.0, -650.0, 1000.0),
+            Box(1800.0, 1900.0, 650.0, 2000.0, 1000.0),
+            *walls(-1000.0, 5000.0, -2000.0, 2000.0),
+        )
+    )
+    hits = cast_laser(world, (x_mm, 0.0, 0.0), RigMount(), DotPattern(), rig)
+    rng = np.random.default_rng(0)
+    m1, b1 = render_camera_pair(
+        rig.cam1, rig.cam1.project(hits.xyz[hits.visible1]), RenderOptions(), rng
+    )
+    m2, b2 = render_camera_pair(
+        rig.cam2, rig.cam2.project(hits.xyz[hits.visible2]), RenderOptions(), rng
+    )
+    pixels = match_dots(calib, detect_dots(m1, b1), detect_dots(m2, b2), "best")
+    xyz, _ = triangulate(calib.rig, pixels, "best", 0.1)
+    true1 = rig.cam1.project(hits.xyz)
+    near1 = (
+        np.hypot(pixels[:, None, 0] - true1[None, :, 0], pixels[:, None, 1] - true1[None, :, 1])
+        < 1.5
+    )
+    near1[:, ~hits.visible1] = False
+    # 3-D error of each matched point against the dot its camera-1 image belongs to
+    err = np.where(near1, np.linalg.norm(xyz[:, None] - hits.xyz[None], axis=2), np.inf).min(1)
+    # no phantom, above the floor (an obstacle) or under it (a drop-off): no point more than
+    # 50 mm off the position of the dot its camera-1 image belongs to
+    phantom = err > 50.0
+    assert not phantom.any(), xyz[phantom].round()
+    visible = int(hits.visible.sum())
+    correct, wrong = score(pixels, rig.project(hits.xyz[hits.visible]))
+    assert correct >= 0.7 * visible  # refused rows stay unmatched, never guessed
+    assert wrong <= 0.01 * visible
+
+
 @pytest.mark.parametrize("scene_name", ["vertical_550", "vertical_750", "vertical_1150"])
 def test_best_is_right_near_walls(rig, calib, scene_name: str) -> None:
     """Walls close ahead: where the mirror disk cuts a laser row, a pairing shifted by two

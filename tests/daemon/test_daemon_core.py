@@ -117,6 +117,20 @@ def test_control_unit_fault_flag_stops():
     assert core.last_report.reasons == (Reason.FAULT,)
 
 
+def test_informational_control_unit_flags_do_not_stop():
+    """RESET (first reply after power-up) and RX_ERROR (one rejected frame) are not faults."""
+    from omnid.devices.cu_codec import FAULT_RESET, FAULT_RX_ERROR
+
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.5)
+    core.on_status(chair.status(1.5, faults=FAULT_RESET | FAULT_RX_ERROR))
+    core.step(1.5)
+    assert Reason.FAULT not in core.last_report.reasons
+    assert Reason.STATUS_STALE not in core.last_report.reasons
+
+
 def test_stale_perception_refuses_forward():
     core, m = make_core()
     free_map(m)

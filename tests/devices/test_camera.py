@@ -45,7 +45,7 @@ def test_video_files_read_like_devices(tmp_path):
         for _ in range(5):  # 3 frames, then loops back
             img1, img2, t_s = await src.read_pair()
             assert img1.shape == (48, 64) and img1.dtype == np.uint8
-            assert t_s >= t_prev and abs(t_s - time.monotonic()) < 1.0
+            assert t_s >= t_prev and abs(t_s - time.monotonic()) < 5.0
             t_prev = t_s
             seen.append((round((img1.mean() - 10) / 20), round((img2.mean() - 110) / 20)))
         await src.flush()
@@ -141,7 +141,7 @@ def test_sim_unix_wire_format_and_timeout(tmp_path):
         t0 = time.monotonic()
         with pytest.raises(DeviceTimeout, match="no frames within 0.2 s"):
             await src.read_pair()
-        assert 0.15 < time.monotonic() - t0 < 1.0
+        assert 0.15 < time.monotonic() - t0 < 5.0  # not early; the bound only says "no hang"
         await src.close()
         server.close()
 

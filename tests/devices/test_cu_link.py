@@ -7,6 +7,7 @@ flag), not wall time, so the assertions hold on a loaded CI machine.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -17,13 +18,14 @@ import pytest
 from omnid.config import from_mapping
 from omnid.devices import cu_codec as codec
 from omnid.devices.control_unit import (
+    ControlUnitHealth,
     ControlUnitLink,
     ControlUnitSettings,
     WheelCommand,
 )
 from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
-from omnid.devices.transport import pipe_pair
-from omnid.errors import ConfigError, ProtocolError
+from omnid.devices.transport import LoopTransport, Transport, pipe_pair
+from omnid.errors import ConfigError, DeviceClosed, DeviceError, ProtocolError
 
 PERIOD_S = 0.01
 
@@ -41,12 +43,30 @@ def settings(port: str, **kw) -> ControlUnitSettings:
     return ControlUnitSettings(**base)
 
 
-async def wait_for(pred: Callable[[], bool], timeout_s: float = 2.0) -> None:
+async def wait_for(pred: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    """Poll ``pred`` until true; the deadline is generous (a loaded CI machine), not a claim."""
     deadline = time.monotonic() + timeout_s
     while not pred():
         if time.monotonic() > deadline:
             raise AssertionError("condition not reached in time")
         await asyncio.sleep(0.002)
+
+
+class UnhealthyProbe(logging.Handler):
+    """Notes ``commands_sent`` at the instant the link logs that it became unhealthy.
+
+    The log call runs synchronously inside the link's task, so the count is exact however late
+    the test's own polling gets to run on a busy machine.
+    """
+
+    def __init__(self, link: ControlUnitLink) -> None:
+        super().__init__(logging.WARNING)
+        self.link = link
+        self.sent_at_unhealthy: list[int] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "unhealthy" in record.getMessage():
+            self.sent_at_unhealthy.append(self.link.health.commands_sent)
 
 
 def with_link(
@@ -97,22 +117,33 @@ def test_round_trip_drives_wheels_counts_clocks_and_switches_laser(emu: ControlU
         st0 = link.status
         assert st0 is not None and not st0.laser_on
         link.set_command(WheelCommand(1.0, -0.5, laser_on=True, enable=True))
-        await asyncio.sleep(0.4)
+
+        def moved() -> bool:
+            st = link.status
+            # 30 rpm = 7.5 clocks/s at full duty: left forward, right backward at half speed
+            return (
+                st is not None
+                and st.left_clocks - st0.left_clocks >= 2
+                and st.right_clocks - st0.right_clocks <= -1
+                and st.laser_on
+            )
+
+        await wait_for(moved)
         st = link.status
         assert st is not None
-        # 30 rpm = 7.5 clocks/s at full duty; 0.4 s → ~3 clocks left, ~-1.5 right
-        assert st.left_clocks - st0.left_clocks >= 2
-        assert st.right_clocks - st0.right_clocks <= -1
-        assert st.laser_on and emu.laser_on
         assert st.left_applied_duty == 1.0 and st.right_applied_duty == -0.5
-        assert emu.applied_duty == (1.0, -0.5)
+        assert emu.laser_on and emu.applied_duty == (1.0, -0.5)
         h = link.health
-        assert h.timeouts == 0 and h.crc_errors == 0 and h.seq_errors == 0
-        assert h.replies_ok >= 20
+        # A pty never corrupts bytes. Replies may miss the 8 ms deadline on a busy machine; such
+        # a late reply is dropped before the next command, never taken for it or blamed on it.
+        assert h.crc_errors == 0 and h.malformed == 0
+        assert h.seq_errors + (h.late_bytes_discarded > 0) <= h.timeouts
+        assert h.replies_ok >= 10 and h.replies_ok + h.timeouts <= h.commands_sent
         link.set_command(WheelCommand.stop())
         await wait_for(lambda: emu.applied_duty == (0.0, 0.0) and not emu.laser_on)
 
-    with_link(emu, emu.path or "", body)
+    # a watchdog long enough that a scheduling gap on a busy machine cannot trip it here
+    with_link(emu, emu.path or "", body, unit_watchdog_s=0.5)
 
 
 def test_clock_counters_unwrap_across_int32_wrap(tmp_path: Path):
@@ -139,8 +170,23 @@ def test_clock_counters_unwrap_across_int32_wrap(tmp_path: Path):
         emu.close()
 
 
-def _periods_until_unhealthy(link: ControlUnitLink, sent_at_fault: int) -> int:
-    return link.health.commands_sent - sent_at_fault
+async def inject_when_steady(
+    link: ControlUnitLink, probe: UnhealthyProbe, inject: Callable[[], None]
+) -> int:
+    """Inject a fault while the link is healthy with no miss pending; returns the period count.
+
+    Periods = commands sent from the injection to the instant the link turned unhealthy (the
+    probe's exact count). Nothing awaits between the check and the injection, so the first
+    transition the probe sees is after the fault; a reply missed for load can only shorten it.
+    """
+    await wait_for(lambda: link.health.healthy and link.health.consecutive_missed == 0)
+    fired = len(probe.sent_at_unhealthy)
+    sent = link.health.commands_sent
+    inject()
+    await wait_for(lambda: not link.health.healthy)
+    assert link.status is None  # visible at once: the daemon stops on None
+    assert len(probe.sent_at_unhealthy) > fired, "the transition was not logged"
+    return probe.sent_at_unhealthy[fired] - sent
 
 
 @pytest.mark.parametrize("fault", ["stall", "corrupt", "drop"])
@@ -150,18 +196,20 @@ def test_silent_or_corrupt_unit_detected_within_3_periods_and_recovered(
     caplog.set_level(logging.WARNING, "omnid.devices.control_unit")
 
     async def body(link: ControlUnitLink):
-        link.set_command(WheelCommand(0.3, 0.3, enable=True))
-        await asyncio.sleep(0.05)
-        sent = link.health.commands_sent
-        {"stall": emu.stall, "corrupt": emu.corrupt_replies, "drop": emu.drop_replies}[fault]()
-        await wait_for(lambda: not link.health.healthy)
-        assert link.status is None  # visible at once: the daemon stops on None
-        assert _periods_until_unhealthy(link, sent) <= 3
-        h = link.health
-        if fault == "corrupt":
-            assert h.crc_errors >= 2
+        probe = UnhealthyProbe(link)
+        logging.getLogger("omnid.devices.control_unit").addHandler(probe)
+        try:
+            link.set_command(WheelCommand(0.3, 0.3, enable=True))
+            inject = {"stall": emu.stall, "corrupt": emu.corrupt_replies, "drop": emu.drop_replies}
+            periods = await inject_when_steady(link, probe, inject[fault])
+        finally:
+            logging.getLogger("omnid.devices.control_unit").removeHandler(probe)
+        assert 1 <= periods <= 3  # the reply in flight at the injection may still arrive
+        if fault == "corrupt":  # every reply now fails its CRC, and each one is counted
+            await wait_for(lambda: link.health.crc_errors >= 2)
         else:
-            assert h.timeouts >= 2
+            await wait_for(lambda: link.health.timeouts >= 2)
+        assert link.status is None
         assert any("unhealthy" in r.message for r in caplog.records)
         emu.recover()
         await wait_for(lambda: link.health.healthy)
@@ -176,14 +224,18 @@ def test_unplug_replug_detected_within_3_periods_and_reconnected(emu: ControlUni
     async def body(link: ControlUnitLink):
         before = link.status
         assert before is not None
-        sent = link.health.commands_sent
-        emu.die()
-        await wait_for(lambda: not link.health.healthy)
-        assert _periods_until_unhealthy(link, sent) <= 3
-        assert link.status is None
+        probe = UnhealthyProbe(link)
+        logging.getLogger("omnid.devices.control_unit").addHandler(probe)
+        try:
+            periods = await inject_when_steady(link, probe, emu.die)
+        finally:
+            logging.getLogger("omnid.devices.control_unit").removeHandler(probe)
+        assert periods <= 3  # the first failed read or write drops the port at once
+        await wait_for(lambda: not link.health.connected)
         await asyncio.sleep(0.1)  # stays down while unplugged: reconnect attempts back off
         h = link.health
-        assert not h.connected and not h.healthy and h.port_errors >= 1
+        assert not h.connected and not h.healthy and h.port_errors >= 1 and h.reconnects == 0
+        assert link.status is None
         emu.recover()
         await wait_for(lambda: link.health.healthy)
         h = link.health
@@ -197,19 +249,21 @@ def test_unplug_replug_detected_within_3_periods_and_reconnected(emu: ControlUni
 def test_unit_watchdog_stops_motors_and_laser_when_commands_stop(emu: ControlUnitEmulator):
     async def body(link: ControlUnitLink):
         link.set_command(WheelCommand(0.8, 0.8, laser_on=True, enable=True))
-        await wait_for(lambda: emu.laser_on)
-        assert emu.applied_duty == (0.8, 0.8)
+        await wait_for(lambda: emu.laser_on and emu.applied_duty == (0.8, 0.8))
         task = link._task
         assert task is not None
         task.cancel()  # the master dies without a word: no stop command is sent
-        await asyncio.sleep(0.1 + 0.05)  # unit_watchdog_s = 0.1
+        trips0 = emu.watchdog_trips  # (a scheduling gap on a busy machine may have tripped it)
+        # sleeps never end early: 0.15 s after the last command the 0.1 s watchdog has tripped
+        await asyncio.sleep(0.1 + 0.05)
         assert emu.applied_duty == (0.0, 0.0)
-        assert emu.watchdog_trips == 1
-        await asyncio.sleep(0.03)
+        assert emu.watchdog_trips == trips0 + 1
+        await asyncio.sleep(0.03)  # + the 0.02 s relay delay
         assert not emu.laser_on
+        await asyncio.sleep(0.2)  # the wheels coast to a halt (tau 0.02 s: 10 τ) ...
         c0 = emu.clocks
-        await asyncio.sleep(0.2)  # the wheels coast to a halt (tau 0.02 s) and stay there
-        assert emu.clocks == c0
+        await asyncio.sleep(0.2)  # ... and stay there
+        assert emu.clocks == c0 and emu.watchdog_trips == trips0 + 1
 
     with_link(emu, emu.path or "", body)
 
@@ -270,3 +324,145 @@ def test_missing_port_retries_with_backoff_and_stays_unhealthy(tmp_path: Path):
         await link.stop()
 
     asyncio.run(main())
+
+
+def test_late_partial_reply_is_dropped_before_the_next_command_not_blamed_on_it():
+    """Regression (found by the load flake hunt): a reply that misses its deadline used to sit
+    in the input and be parsed together with the next reply, counting a CRC error on a clean
+    line (and, had it been the only reply, a miss blamed on the wrong command). The driver now
+    discards stale input before each command, as a half-duplex master must.
+
+    Same event loop for unit and link: the 10 ms reply deadline fires before the unit's 50 ms
+    delay on any machine, and the late bytes land long before the next command (200 ms period).
+    """
+
+    async def main():
+        a, b = pipe_pair()
+        unit = ControlUnitEmulator()
+        parser = codec.FrameParser(accept=(codec.TYPE_COMMAND,))
+        late = 12  # the first 12 of 21 reply bytes: a frame cut short
+
+        async def serve() -> None:
+            n = 0
+            while True:
+                data = await b.read_some(64, 5.0)
+                for frame in parser.feed(data):
+                    n += 1
+                    reply = unit.handle_bytes(codec.encode_command(frame))
+                    if n == 3:
+                        await asyncio.sleep(0.05)
+                        reply = reply[:late]
+                    await b.write(reply)
+
+        server = asyncio.create_task(serve())
+        link = ControlUnitLink(
+            settings("pipe", command_period_s=0.2, reply_timeout_s=0.01, unit_watchdog_s=0.5),
+            transport_factory=lambda: a,
+        )
+        await link.start()
+        try:
+            await wait_for(lambda: link.health.replies_ok >= 4)
+            h = link.health
+        finally:
+            await link.stop()
+            server.cancel()
+        assert h.crc_errors == 0 and h.malformed == 0 and h.seq_errors == 0
+        assert h.timeouts == 1 and h.healthy
+        assert h.late_bytes_discarded == late
+
+    asyncio.run(main())
+
+
+class HangingEnd(LoopTransport):
+    """A pipe end whose writes can be made to hang forever (a wedged USB adapter driver)."""
+
+    hang = False
+
+    async def _write_raw(self, data: bytes) -> None:
+        if self.hang:
+            await asyncio.Event().wait()
+        await super()._write_raw(data)
+
+
+def test_stuck_or_dead_link_task_never_leaves_a_stale_status(caplog):
+    caplog.set_level(logging.WARNING, "omnid.devices.control_unit")
+
+    async def main():
+        a, b = HangingEnd("hang:a"), LoopTransport("hang:b")
+        a.peer, b.peer = b, a
+        emu = ControlUnitEmulator()
+        emu.serve_pipe(b)
+        s = settings("pipe", unit_watchdog_s=0.1)
+        link = ControlUnitLink(s, transport_factory=lambda: a)
+        await link.start()
+        await wait_for(lambda: link.status is not None)
+        a.hang = True  # the task now waits forever inside a write: no reply, no miss counted
+        await wait_for(lambda: link.status is None)
+        st = link.last_status
+        assert st is not None and time.monotonic() - st.timestamp_s > s.unit_watchdog_s
+        assert not link.health.healthy and link.health.timeouts == 0
+        assert "old" in caplog.text
+        await link.stop()  # gives up on the stuck task after its own timeout
+        assert link.status is None
+        emu.close()
+        # a task that died (cancelled here) is caught at once, without waiting for the age
+        a2, b2 = pipe_pair()
+        emu = ControlUnitEmulator()
+        emu.serve_pipe(b2)
+        link2 = ControlUnitLink(s, transport_factory=lambda: a2)
+        await link2.start()
+        await wait_for(lambda: link2.status is not None)
+        task = link2._task
+        assert task is not None
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        assert link2.status is None and "task not running" in caplog.text
+        await link2.stop()
+        emu.close()
+
+    asyncio.run(main())
+
+
+class DeadOnArrival(LoopTransport):
+    """A port that opens fine and fails every write (an adapter that enumerates but is dead)."""
+
+    async def _write_raw(self, data: bytes) -> None:
+        raise DeviceClosed(f"{self.name}: device disconnected (EIO)")
+
+
+def test_port_that_opens_but_fails_at_once_is_retried_with_backoff_not_spun():
+    """Regression: reopen followed by an instant write error used to loop without ever yielding,
+    freezing the whole event loop (the daemon could not even stop). Now each failure backs off.
+    """
+    opens = 0
+
+    def factory() -> Transport:
+        nonlocal opens
+        opens += 1
+        if opens > 500:  # the old spin would get here without yielding; end it, then fail below
+            raise DeviceError("gave up")
+        return DeadOnArrival(f"dead{opens}")
+
+    async def main():
+        link = ControlUnitLink(settings("dead"), transport_factory=factory)
+        await link.start()
+        t0 = time.monotonic()
+        ticks = 0
+        for _ in range(20):  # the loop keeps running other tasks meanwhile
+            await asyncio.sleep(0.01)
+            ticks += 1
+        h = link.health
+        elapsed_s = time.monotonic() - t0
+        await link.stop()
+        return ticks, h, elapsed_s
+
+    ticks, h, elapsed_s = asyncio.run(main())
+    assert ticks == 20 and link_never_healthy(h)
+    # back-off from 10 ms doubling to 50 ms: at most one reopen per 10 ms, never 500 at once
+    assert 2 <= opens <= 2 + elapsed_s / 0.01, (opens, elapsed_s)
+    assert h.port_errors == opens and "EIO" in h.last_error
+
+
+def link_never_healthy(h: ControlUnitHealth) -> bool:
+    return not h.healthy and h.replies_ok == 0

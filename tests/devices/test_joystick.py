@@ -88,7 +88,8 @@ def _raw_pty() -> tuple[int, str]:
     return master, path
 
 
-async def _until(cond, timeout_s=2.0):
+async def _until(cond, timeout_s=10.0):
+    """Poll ``cond`` until true; the deadline is generous (a loaded CI machine), not a claim."""
     t_end = time.monotonic() + timeout_s
     while not cond():
         assert time.monotonic() < t_end, "condition not reached"
@@ -111,20 +112,20 @@ def test_evdev_link_over_a_pty_and_unplug():
         os.write(master, pack_event(EV_ABS, ABS_X, 55) + pack_event(EV_SYN, SYN_REPORT, 0))
         await _until(lambda: link.latest is not None and link.latest.forward == 1.0)
         assert link.latest.turn == pytest.approx(-0.5)
-        # a held stick sends nothing, yet stays valid and fresh while the device is healthy
+        # a held stick sends nothing, yet stays valid while the device is healthy: the link
+        # re-vouches for the position (fresh timestamps long after the last event)
+        t_held = time.monotonic()
         await asyncio.sleep(0.3)
-        r = link.latest
-        assert r is not None and r.forward == 1.0
-        assert time.monotonic() - r.timestamp_s <= s.stale_after_s
+        await _until(lambda: link.latest is not None and link.latest.timestamp_s > t_held + 0.25)
+        assert link.latest is not None and link.latest.forward == 1.0
         os.close(master)  # unplugged: reads fail with EIO
-        t0 = time.monotonic()
-        await _until(lambda: link.latest is None)
-        lost_after = time.monotonic() - t0
+        await _until(lambda: not link.connected)
+        assert link.latest is None  # None as soon as the link knows, not after staleness
         await link.stop()
-        return lost_after, link.errors
+        return link.errors
 
-    lost_after, errors = asyncio.run(go())
-    assert lost_after < 0.1 and errors == 1
+    errors = asyncio.run(go())
+    assert errors == 1
 
 
 def test_missing_event_device_names_it():
