@@ -8,7 +8,8 @@ The path parameter ``s`` is the travel of the footprint's fastest point (the axl
 straight line, the farthest corner when turning in place), so one set of distances serves every
 kind of motion. From the first blocked ``s`` (``clearance``) come:
 
-- stop zone: clearance ≤ ``stop_distance_mm`` → no motion in that direction;
+- stop zone: clearance ≤ ``stop_distance_mm`` → no motion in that direction, unless the move is
+  an escape move (below) → at most ``escape_speed_mm_s`` / ``escape_turn_rad_s``;
 - slow zone: clearance ≤ ``slow_distance_mm`` → at most ``slow_speed_mm_s``;
 - approach: time to reach the stop line ≥ ``approach_time_s``, and the chair can still brake
   before it at ``brake_decel_mm_s2``;
@@ -16,9 +17,22 @@ kind of motion. From the first blocked ``s`` (``clearance``) come:
   ``unknown_distance_mm`` are unknown → at most ``unknown_speed_mm_s``;
 - stale perception (no cloud, or older than ``perception_timeout_s``) → no forward motion.
 
+Escape moves (a chair in a pocket between boxes must not be stranded): in the stop zone, a move
+that does not close the gap to what is near is allowed at a creep speed. The gap is the smallest
+distance from the footprint (without margin) to the blocking cells within
+``margin_mm + stop_distance_mm`` (plus a cell and the step) of it; it is evaluated now and at
+poses along the first ``escape_step_mm`` of the commanded motion, and the move is an escape if
+it never drops by more than ``escape_tolerance_mm``. The margin is never traded: over the same
+step no cell may come nearer than ``margin_mm`` (one already inside the margin: no nearer at
+all), exactly per cell — the sweep's grown corners are too coarse for a chair wedged in a
+corner. The control loop re-checks every cycle, so the creep ends where the gap would close
+or the margin be reached. A move whose first contact is a drop-off is never an escape
+(``dropoff_stop`` stays a refusal). Reason ``escape_creep``.
+
 The most restrictive limit wins; the rider's v and ω are scaled by one factor, so the chair keeps
-the path the rider asked for. Cells under the chair's own footprint at the start are ignored:
-the vision system cannot see there, and the chair physically occupies them.
+the path the rider asked for. Cells under the chair itself (the footprint without its margin)
+at the start are ignored: the vision system cannot see there, and the chair physically occupies
+them. Cells inside the margin count: a motion that brings one nearer is refused at once.
 
 Every limitation comes with :class:`Reason` codes and is logged (rate-limited per reason, see
 :class:`ReasonLog`).
@@ -49,6 +63,7 @@ class Reason(Enum):
     DROPOFF_STOP = "dropoff_stop"
     SLOW_ZONE = "slow_zone"
     APPROACH = "approach"
+    ESCAPE = "escape_creep"  # in the stop zone, but the move opens the gap: creep speed
     UNKNOWN_AHEAD = "unknown_ahead"
     PERCEPTION_STALE = "perception_stale"
     RIDER_STOP = "rider_stop"
@@ -76,6 +91,11 @@ class SafetySettings:
     unknown_speed_mm_s: float = 120.0
     perception_timeout_s: float = 1.5
     log_interval_s: float = 2.0  # one log line per reason at most this often
+    # escape moves in the stop zone (see the module docstring); 0 speed disables them
+    escape_speed_mm_s: float = 0.0  # |v| cap of an escape move (0: no escapes, main's rule)
+    escape_turn_rad_s: float = 0.05  # |ω| cap: the farthest footprint corner at ≈ 45 mm/s
+    escape_step_mm: float = 30.0  # the short step (fastest point) the gap is evaluated over
+    escape_tolerance_mm: float = 2.0  # gap decrease still counted as "not closing"
 
     def __post_init__(self) -> None:
         for name in (
@@ -93,6 +113,14 @@ class SafetySettings:
         ):
             require(getattr(self, name) > 0, name, "must be positive")
         require(self.margin_mm >= 0, "margin_mm", "must not be negative")
+        for name in ("escape_speed_mm_s", "escape_turn_rad_s", "escape_tolerance_mm"):
+            require(getattr(self, name) >= 0, name, "must not be negative")
+        require(0 < self.escape_step_mm <= 200.0, "escape_step_mm", "must be in (0, 200]")
+        require(
+            self.escape_speed_mm_s <= self.slow_speed_mm_s,
+            "escape_speed_mm_s",
+            "must not exceed slow_speed_mm_s",
+        )
         require(
             self.slow_distance_mm >= self.stop_distance_mm,
             "slow_distance_mm",
@@ -234,6 +262,10 @@ class SafetyLayer:
         self._x0, self._x1 = -s.footprint_rear_mm - m, s.footprint_front_mm + m
         self._y0 = -0.5 * s.footprint_width_mm - m
         self._y1 = -self._y0
+        # the chair itself (no margin): cells under it are not seen and not obstacles
+        self._fx0, self._fx1 = -s.footprint_rear_mm, s.footprint_front_mm
+        self._fy1 = 0.5 * s.footprint_width_mm
+        self._fy0 = -self._fy1
         corners = np.array(
             [[self._x0, self._y0], [self._x0, self._y1], [self._x1, self._y0], [self._x1, self._y1]]
         )
@@ -351,25 +383,82 @@ class SafetyLayer:
         u: float,
     ) -> NDArray[np.float64]:
         """Contact path parameter (mm) of each cell centre (``rect``: the footprint grown by half a
-        cell), the cells whose centre lies in the start footprint ignored (see
-        :func:`contact_path_s`)."""
+        cell), the cells whose centre lies under the chair itself (the footprint without its
+        margin) ignored (see :func:`contact_path_s`)."""
         hz = self.settings.horizon_mm
         s_mm = contact_path_s(px, py, v_mm_s, omega_rad_s, rect, u, hz)
-        own = (px >= self._x0) & (px <= self._x1) & (py >= self._y0) & (py <= self._y1)
+        own = (px >= self._fx0) & (px <= self._fx1) & (py >= self._fy0) & (py <= self._fy1)
         band = np.flatnonzero((s_mm == 0.0) & ~own)
         if band.size:
-            # Cells overlapping the footprint's edge at the start (centre within half a cell of
-            # it) are inside the grown rectangle already. Each is tested against the footprint
-            # grown by its own (Chebyshev) distance instead: in contact at once when the motion
-            # brings it nearer, later when it draws away first and comes back.
+            # Cells overlapping the footprint's margin at the start (centre inside the margin, or
+            # within half a cell of its edge) are inside the grown rectangle already. Each is
+            # tested against the footprint grown (or shrunk, inside the margin) by its own
+            # Chebyshev distance instead: in contact at once when the motion brings it nearer,
+            # later when it draws away first and comes back. So a cell seen inside the margin
+            # is never driven into (the margin is not traded), and never strands the chair.
             bx, by = px[band], py[band]
             g = np.maximum(
                 np.maximum(self._x0 - bx, bx - self._x1), np.maximum(self._y0 - by, by - self._y1)
-            ) * (1.0 - 1e-9)
+            )
+            g = g - 1e-9 * (np.abs(g) + 1.0)  # the cell just outside its own rectangle
             grown = (self._x0 - g, self._x1 + g, self._y0 - g, self._y1 + g)
             s_mm[band] = contact_path_s(bx, by, v_mm_s, omega_rad_s, grown, u, hz)
         s_mm[own] = math.inf
         return s_mm
+
+    def escape_gaps(
+        self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float
+    ) -> NDArray[np.float64]:
+        """Distances (mm) between the footprint without its margin and each blocking cell centre
+        near it, now and at 6 poses evenly along the first ``escape_step_mm`` (travel of the
+        fastest footprint point) of the motion (v, ω): shape (7, N), row 0 = now. Near: within
+        ``margin_mm + stop_distance_mm`` plus a cell and the step of the footprint now; the cells
+        under the chair itself are ignored, as in :meth:`sweep`.
+        """
+        s = self.settings
+        u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
+        self.sweep(grid, v_mm_s, omega_rad_s)  # the blocking cells of this map (cached)
+        if u <= 0.0 or self._blocking is None:
+            return np.zeros((7, 0))
+        bx, by, _ = self._blocking
+        reach = s.margin_mm + s.stop_distance_mm + grid.settings.resolution_mm + s.escape_step_mm
+        own = (bx >= self._fx0) & (bx <= self._fx1) & (by >= self._fy0) & (by <= self._fy1)
+        near = np.flatnonzero((self._rect_distance(bx, by) <= reach) & ~own)
+        px, py = bx[near], by[near]
+        ss = np.linspace(0.0, s.escape_step_mm, 7)
+        th = ss * (omega_rad_s / u)
+        if omega_rad_s == 0.0:
+            ox, oy = ss * (v_mm_s / u), np.zeros_like(ss)
+        else:
+            r = v_mm_s / omega_rad_s
+            ox, oy = r * np.sin(th), r * (1.0 - np.cos(th))
+        # each cell in the robot frame of each pose: R(−θ)·(p − o)
+        c, sn = np.cos(th)[:, None], np.sin(th)[:, None]
+        dx, dy = px[None, :] - ox[:, None], py[None, :] - oy[:, None]
+        return self._rect_distance(c * dx + sn * dy, -sn * dx + c * dy)
+
+    def _rect_distance(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Euclidean distance (mm) of robot-frame points from the footprint without margin."""
+        ex = np.maximum(np.maximum(self._fx0 - x, x - self._fx1), 0.0)
+        ey = np.maximum(np.maximum(self._fy0 - y, y - self._fy1), 0.0)
+        return np.asarray(np.hypot(ex, ey), dtype=np.float64)
+
+    def is_escape(self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float) -> bool:
+        """Whether a move in the stop zone is an escape move (module docstring), from
+        :meth:`escape_gaps` over the first ``escape_step_mm``: the gap to the nearest cell never
+        drops by more than ``escape_tolerance_mm`` (the move does not close on what is near),
+        and no cell comes nearer than ``margin_mm`` — or, already inside the margin, any nearer
+        (no tolerance: the margin is never traded, not even a little per control cycle)."""
+        s = self.settings
+        if s.escape_speed_mm_s <= 0.0:
+            return False
+        d = self.escape_gaps(grid, v_mm_s, omega_rad_s)
+        if d.shape[1] == 0:
+            return False  # nothing near, yet in the stop zone: not a pocket, keep the refusal
+        tol = s.escape_tolerance_mm
+        opens = bool(np.all(d.min(axis=1)[1:] >= d[0].min() - tol))
+        keeps_margin = bool(np.all(d[1:] >= np.minimum(d[0], s.margin_mm)[None, :] - 1e-6))
+        return opens and keeps_margin
 
     def _unknown_fraction(
         self,
@@ -496,10 +585,16 @@ class SafetyLayer:
             caps.append(0.0)
         clearance, state, unknown = self.sweep(grid, v_mm_s, omega_rad_s)
         if clearance <= s.stop_distance_mm:
-            reasons.append(
-                Reason.DROPOFF_STOP if state is CellState.DROPOFF else Reason.OBSTACLE_STOP
-            )
-            caps.append(0.0)
+            if state is CellState.OBSTACLE and self.is_escape(grid, v_mm_s, omega_rad_s):
+                reasons.append(Reason.ESCAPE)
+                cap_v = s.escape_speed_mm_s / abs(v_mm_s) if v_mm_s else math.inf
+                cap_w = s.escape_turn_rad_s / abs(omega_rad_s) if omega_rad_s else math.inf
+                caps.append(u * min(cap_v, cap_w))
+            else:
+                reasons.append(
+                    Reason.DROPOFF_STOP if state is CellState.DROPOFF else Reason.OBSTACLE_STOP
+                )
+                caps.append(0.0)
         elif math.isfinite(clearance):
             room = clearance - s.stop_distance_mm
             if clearance <= s.slow_distance_mm and u > s.slow_speed_mm_s:
