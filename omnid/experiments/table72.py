@@ -19,9 +19,6 @@
     the nearest projected position (≤ 1.5 px, in each camera; matching between cameras is not
     this experiment's business), and triangulated with each method. Reported: mean absolute error
     per axis in mm per plane and over the whole range, for every detector x triangulation pair.
-    If the thesis detector is not available, its stand-in is the best detector's centres rounded
-    to whole pixels (the thesis' 8x8 model gives the brightest pixel, i.e. an integer centre) —
-    the report says so.
 """
 
 from __future__ import annotations
@@ -281,21 +278,10 @@ def associate(
     return np.where(ok, best, -1).astype(np.int64)
 
 
-def _detect(mask: NDArray, base: NDArray, method: str, notes: list[str]) -> NDArray[np.float64]:
+def _detect(mask: NDArray, base: NDArray, method: str) -> NDArray[np.float64]:
     from omnid.core.detect import detect_dots
 
-    try:
-        return detect_dots(mask, base, method=method)[:, :2]  # type: ignore[arg-type]
-    except ValueError:
-        if method != "thesis":
-            raise
-    note = (
-        "thesis detector not available in this build: stand-in = best detector's centres "
-        "rounded to whole pixels (the 8x8 model's brightest-pixel centre)"
-    )
-    if note not in notes:
-        notes.append(note)
-    return np.rint(detect_dots(mask, base, method="best")[:, :2])
+    return detect_dots(mask, base, method=method)[:, :2]  # type: ignore[arg-type]
 
 
 def run_detected(
@@ -326,8 +312,8 @@ def run_detected(
         capture = render_capture(rig, P, seed=rng)
         exact = rig.project(P)
         for det in detectors:
-            d1 = _detect(capture.mask1, capture.base1, det, notes)
-            d2 = _detect(capture.mask2, capture.base2, det, notes)
+            d1 = _detect(capture.mask1, capture.base1, det)
+            d2 = _detect(capture.mask2, capture.base2, det)
             i1 = associate(exact[:, :2], d1, max_assoc_px)
             i2 = associate(exact[:, 2:], d2, max_assoc_px)
             ok = (i1 >= 0) & (i2 >= 0)
