@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 from omnid.config import require
 from omnid.devices import cu_codec as codec
-from omnid.devices.link import LinkHealth, PolledLink
+from omnid.devices.link import LinkHealth, PolledLink, require_reconnect
 from omnid.devices.transport import Rs485Options, Transport, open_transport
 from omnid.errors import DeviceError, ProtocolError
 
@@ -159,12 +159,7 @@ class ControlUnitSettings:
             "must be at least two command periods, or the unit trips between commands",
         )
         require(1 <= self.max_missed_replies <= 3, "max_missed_replies", "must be 1–3")
-        require(self.reconnect_initial_s > 0, "reconnect_initial_s", "must be > 0")
-        require(
-            self.reconnect_max_s >= self.reconnect_initial_s,
-            "reconnect_max_s",
-            "must be ≥ reconnect_initial_s",
-        )
+        require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
 
 
 @dataclass

@@ -34,10 +34,20 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar, Generic, TypeVar
 
+from omnid.config import require
 from omnid.devices.transport import Transport
 from omnid.errors import DeviceError
 
-__all__ = ["LinkHealth", "PolledLink"]
+__all__ = ["LinkHealth", "PolledLink", "require_reconnect"]
+
+
+def require_reconnect(reconnect_initial_s: float, reconnect_max_s: float) -> None:
+    """Validate a link's back-off keys (for settings' ``__post_init__``): initial > 0 s, max ≥
+    initial; raises :class:`~omnid.errors.ConfigError` naming the key."""
+    require(reconnect_initial_s > 0, "reconnect_initial_s", "must be > 0")
+    require(
+        reconnect_max_s >= reconnect_initial_s, "reconnect_max_s", "must be ≥ reconnect_initial_s"
+    )
 
 
 @dataclass

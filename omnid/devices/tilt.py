@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 from omnid.config import require
 from omnid.devices import gs311_codec as codec
-from omnid.devices.link import LinkHealth, PolledLink
+from omnid.devices.link import LinkHealth, PolledLink, require_reconnect
 from omnid.devices.transport import Transport, open_transport
 from omnid.errors import ConfigError, DeviceClosed, DeviceError
 
@@ -91,12 +91,7 @@ class TiltSettings:
             "stale_after_s",
             "must be at least two poll periods",
         )
-        require(self.reconnect_initial_s > 0, "reconnect_initial_s", "must be > 0")
-        require(
-            self.reconnect_max_s >= self.reconnect_initial_s,
-            "reconnect_max_s",
-            "must be ≥ reconnect_initial_s",
-        )
+        require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
         self.format  # validates the layout keys  # noqa: B018
 
     @property
