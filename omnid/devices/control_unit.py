@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 from omnid.config import require
 from omnid.devices import cu_codec as codec
+from omnid.devices.link import LinkHealth, PolledLink, require_reconnect
 from omnid.devices.transport import Rs485Options, Transport, open_transport
 from omnid.errors import DeviceError, ProtocolError
 
@@ -158,19 +159,17 @@ class ControlUnitSettings:
             "must be at least two command periods, or the unit trips between commands",
         )
         require(1 <= self.max_missed_replies <= 3, "max_missed_replies", "must be 1–3")
-        require(self.reconnect_initial_s > 0, "reconnect_initial_s", "must be > 0")
-        require(
-            self.reconnect_max_s >= self.reconnect_initial_s,
-            "reconnect_max_s",
-            "must be ≥ reconnect_initial_s",
-        )
+        require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
 
 
 @dataclass
-class ControlUnitHealth:
-    """How the link is doing; a snapshot is returned by :attr:`ControlUnitLink.health`."""
+class ControlUnitHealth(LinkHealth):
+    """How the link is doing; a snapshot is returned by :attr:`ControlUnitLink.health`.
 
-    connected: bool = False
+    ``connected``, ``port_errors``, ``reconnects`` and ``last_error`` come from
+    :class:`~omnid.devices.link.LinkHealth`.
+    """
+
     healthy: bool = False
     last_reply_age_s: float | None = None
     commands_sent: int = 0
@@ -180,24 +179,27 @@ class ControlUnitHealth:
     malformed: int = 0
     seq_errors: int = 0
     late_bytes_discarded: int = 0
-    port_errors: int = 0
-    reconnects: int = 0
     consecutive_missed: int = 0
     unit_faults: int = 0
     unit_rx_errors: int = 0
-    last_error: str = ""
     fault_history: list[str] = field(default_factory=list)
 
     def copy(self) -> ControlUnitHealth:
         return ControlUnitHealth(**{**self.__dict__, "fault_history": list(self.fault_history)})
 
 
-class ControlUnitLink:
+class ControlUnitLink(PolledLink[ControlUnitHealth]):
     """Asyncio driver of the control unit (see module docstring).
 
     ``on_status`` (optional) is called in the event loop with each new status.
     ``transport_factory`` (optional, for in-process emulators) replaces :func:`open_transport`.
+    The task, period grid, reconnect back-off and stop come from
+    :class:`~omnid.devices.link.PolledLink`.
     """
+
+    device_name = "control unit"
+    task_name = "control-unit-link"
+    _log = log
 
     def __init__(
         self,
@@ -205,60 +207,30 @@ class ControlUnitLink:
         on_status: Callable[[ControlUnitStatus], None] | None = None,
         transport_factory: Callable[[], Transport] | None = None,
     ) -> None:
+        super().__init__(
+            transport_factory
+            or (
+                lambda: open_transport(
+                    settings.port, baudrate=settings.baudrate, rs485=settings.rs485
+                )
+            ),
+            ControlUnitHealth(),
+            period_s=settings.command_period_s,
+            reconnect_initial_s=settings.reconnect_initial_s,
+            reconnect_max_s=settings.reconnect_max_s,
+        )
         self.settings = settings
         self._on_status = on_status
-        self._factory = transport_factory or (
-            lambda: open_transport(settings.port, baudrate=settings.baudrate, rs485=settings.rs485)
-        )
         self._command = WheelCommand.stop()
-        self._transport: Transport | None = None
         self._parser = codec.FrameParser(accept=(codec.TYPE_REPLY,))
-        self._task: asyncio.Task[None] | None = None
-        self._stopping = False
         self._seq = 0
-        self._health = ControlUnitHealth()
         self._status: ControlUnitStatus | None = None
         self._last_raw: tuple[int, int] | None = None
         self._unwrapped = (0, 0)
         self._last_reply_t: float | None = None
         self._watchdog_ms = round(settings.unit_watchdog_s * 1000)
-        self._wake = asyncio.Event()
 
-    # -- public API ----------------------------------------------------------------------
-    async def start(self) -> None:
-        """Start the link task (returns at once; it connects in the background)."""
-        if self._task is not None:
-            return
-        self._stopping = False
-        self._task = asyncio.create_task(self._run(), name="control-unit-link")
-
-    async def stop(self) -> None:
-        """Send a final stop command (best effort), then close the port."""
-        self._stopping = True
-        self._command = WheelCommand.stop()
-        if self._task is not None and self._task.done():
-            if not self._task.cancelled() and self._task.exception() is not None:
-                log.error("control unit link task had failed: %r", self._task.exception())
-        elif self._task is not None:
-            self._wake.set()
-            try:
-                async with asyncio.timeout(1.0):
-                    await self._task
-            except TimeoutError:
-                self._task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await self._task
-        self._task = None
-        if self._transport is not None and self._transport.is_open:
-            t = self._transport
-            with contextlib.suppress(DeviceError, TimeoutError):
-                async with asyncio.timeout(0.1):
-                    await t.write(codec.encode_command(self._next_frame()))
-            t.close()
-        self._transport = None
-        self._set_unhealthy("link stopped", warn=False)
-        self._health.connected = False
-
+    # -- public API (start/stop: PolledLink) ---------------------------------------------
     def set_command(self, cmd: WheelCommand, urgent: bool = False) -> None:
         """Make ``cmd`` the command sent from the next period on; ``urgent``: send it now
         (the period grid stays; a rider's new command need not wait up to a period)."""
@@ -266,7 +238,7 @@ class ControlUnitLink:
             raise TypeError(f"set_command expects a WheelCommand, got {type(cmd).__name__}")
         self._command = cmd
         if urgent:
-            self._wake.set()
+            self._wake_up()
 
     @property
     def command(self) -> WheelCommand:
@@ -362,79 +334,30 @@ class ControlUnitLink:
         h, p = self._health, self._parser
         h.crc_errors, h.malformed = p.crc_errors, p.malformed
 
-    async def _connect(self) -> bool:
-        try:
-            self._transport = self._factory()
-        except DeviceError as exc:
-            self._health.last_error = str(exc)
-            return False
+    # -- PolledLink hooks ----------------------------------------------------------------
+    def _on_open(self) -> None:
         self._parser.reset()
-        self._health.connected = True
-        log.info("control unit port %s open", self._transport.name)
-        return True
 
-    def _drop_transport(self, reason: str) -> None:
-        if self._transport is not None:
-            self._transport.close()
-        self._transport = None
-        self._health.connected = False
-        self._health.port_errors += 1
+    def _port_error_reason(self, exc: DeviceError) -> str:
+        return f"port error: {exc}"
+
+    def _port_lost(self, port_name: str, reason: str) -> None:
         self._set_unhealthy(reason)
 
-    async def _run(self) -> None:
-        loop = asyncio.get_running_loop()
-        s = self.settings
-        backoff = s.reconnect_initial_s
-        ever_connected = False
-        next_t = loop.time()
-        while not self._stopping:
-            if self._transport is None:
-                if await self._connect():
-                    if ever_connected:
-                        self._health.reconnects += 1
-                    ever_connected = True
-                    next_t = loop.time()
-                else:
-                    await self._sleep(backoff)
-                    backoff = min(backoff * 2, s.reconnect_max_s)
-                    continue
-            try:
-                await self._exchange(loop)
-            except DeviceError as exc:
-                self._drop_transport(f"port error: {exc}")
-                # back off before reopening: a port that opens but fails at once must not
-                # spin the event loop
-                await self._sleep(backoff)
-                backoff = min(backoff * 2, s.reconnect_max_s)
-                continue
-            except Exception as exc:  # a bug must not leave the unit without a stop decision
-                log.exception("control unit link: unexpected error")
-                self._drop_transport(f"internal error: {exc!r}")
-                # back off before reopening: a port that opens but fails at once must not
-                # spin the event loop
-                await self._sleep(backoff)
-                backoff = min(backoff * 2, s.reconnect_max_s)
-                continue
-            if self._health.consecutive_missed == 0:
-                backoff = s.reconnect_initial_s  # the device answered: a fresh back-off
-            next_t += s.command_period_s
-            delay = next_t - loop.time()
-            if delay < -s.command_period_s:  # overran (loop blocked): restart the grid
-                next_t = loop.time()
-                delay = 0.0
-            await self._sleep(max(delay, 0.0))
+    def _before_stop(self) -> None:
+        self._command = WheelCommand.stop()
 
-    async def _sleep(self, delay_s: float) -> None:
-        # cleared after waking, so a wake-up set during an exchange (urgent command) is not lost
-        if self._stopping:
-            return
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(delay_s):
-                await self._wake.wait()
-        self._wake.clear()
+    async def _farewell(self, transport: Transport) -> None:
+        """A final stop command (best effort: the unit's watchdog stops the motors anyway)."""
+        with contextlib.suppress(DeviceError, TimeoutError):
+            async with asyncio.timeout(0.1):
+                await transport.write(codec.encode_command(self._next_frame()))
 
-    async def _exchange(self, loop: asyncio.AbstractEventLoop) -> None:
-        """One command → reply exchange; bookkeeping of every outcome."""
+    def _on_stopped(self) -> None:
+        self._set_unhealthy("link stopped", warn=False)
+
+    async def _exchange(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """One command → reply exchange; bookkeeping of every outcome. True: the unit answered."""
         t = self._transport
         assert t is not None
         h = self._health
@@ -472,3 +395,4 @@ class ControlUnitLink:
                     f"no reply to seq {seq} within {self.settings.reply_timeout_s * 1000:.0f} ms"
                 )
             self._parser.reset()
+        return got

@@ -40,6 +40,7 @@ from typing import Any, Literal
 from urllib.parse import urlsplit
 
 from omnid.config import require
+from omnid.devices.link import require_reconnect
 from omnid.errors import ConfigError, DeviceClosed, DeviceError
 
 log = logging.getLogger(__name__)
@@ -101,12 +102,7 @@ class JoystickSettings:
         require(self.forward_sign in (-1, 1), "forward_sign", "must be 1 or -1")
         require(self.turn_sign in (-1, 1), "turn_sign", "must be 1 or -1")
         require(self.stale_after_s > 0.0, "stale_after_s", "must be > 0")
-        require(self.reconnect_initial_s > 0.0, "reconnect_initial_s", "must be > 0")
-        require(
-            self.reconnect_max_s >= self.reconnect_initial_s,
-            "reconnect_max_s",
-            "must be ≥ reconnect_initial_s",
-        )
+        require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
 
 
 def normalise(raw: float, lo: float, hi: float) -> float:

@@ -31,6 +31,7 @@ from typing import Any, Literal
 
 from omnid.config import require
 from omnid.devices import gs311_codec as codec
+from omnid.devices.link import LinkHealth, PolledLink, require_reconnect
 from omnid.devices.transport import Transport, open_transport
 from omnid.errors import ConfigError, DeviceClosed, DeviceError
 
@@ -90,12 +91,7 @@ class TiltSettings:
             "stale_after_s",
             "must be at least two poll periods",
         )
-        require(self.reconnect_initial_s > 0, "reconnect_initial_s", "must be > 0")
-        require(
-            self.reconnect_max_s >= self.reconnect_initial_s,
-            "reconnect_max_s",
-            "must be ≥ reconnect_initial_s",
-        )
+        require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
         self.format  # validates the layout keys  # noqa: B018
 
     @property
@@ -111,10 +107,13 @@ class TiltSettings:
 
 
 @dataclass
-class TiltHealth:
-    """How the link is doing; :attr:`TiltSensorLink.health` returns a snapshot."""
+class TiltHealth(LinkHealth):
+    """How the link is doing; :attr:`TiltSensorLink.health` returns a snapshot.
 
-    connected: bool = False
+    ``connected``, ``port_errors``, ``reconnects`` and ``last_error`` come from
+    :class:`~omnid.devices.link.LinkHealth`.
+    """
+
     valid: bool = False
     last_reading_age_s: float | None = None
     requests: int = 0
@@ -123,10 +122,7 @@ class TiltHealth:
     consecutive_timeouts: int = 0
     checksum_errors: int = 0
     range_errors: int = 0
-    port_errors: int = 0
-    reconnects: int = 0
     stale_episodes: int = 0
-    last_error: str = ""
 
 
 class HidTransport(Transport):
@@ -186,13 +182,18 @@ def open_tilt_transport(settings: TiltSettings) -> Transport:
     return open_transport(settings.port, baudrate=settings.baudrate)
 
 
-class TiltSensorLink:
+class TiltSensorLink(PolledLink[TiltHealth]):
     """Asyncio driver of the GS311 (see module docstring).
 
     ``on_reading`` (optional) is called in the event loop with each new reading.
     ``transport_factory`` (optional, for in-process emulators) replaces the URL opener.
-    ``clock`` is the monotonic clock readings are stamped with.
+    ``clock`` is the monotonic clock readings are stamped with. The task, poll grid, reconnect
+    back-off and stop come from :class:`~omnid.devices.link.PolledLink`.
     """
+
+    device_name = "tilt sensor"
+    task_name = "tilt-sensor-link"
+    _log = log
 
     def __init__(
         self,
@@ -201,48 +202,23 @@ class TiltSensorLink:
         transport_factory: Callable[[], Transport] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        self.settings = settings or TiltSettings()
+        s = settings or TiltSettings()
+        super().__init__(
+            transport_factory or (lambda: open_tilt_transport(s)),
+            TiltHealth(),
+            period_s=s.poll_period_s,
+            reconnect_initial_s=s.reconnect_initial_s,
+            reconnect_max_s=s.reconnect_max_s,
+        )
+        self.settings = s
         self._on_reading = on_reading
-        s = self.settings
-        self._factory = transport_factory or (lambda: open_tilt_transport(s))
         self._clock = clock
         self._parser = codec.Gs311Parser(s.format)
-        self._transport: Transport | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._stopping = False
-        self._wake = asyncio.Event()
-        self._health = TiltHealth()
         self._reading: TiltReading | None = None
         self._was_valid = False
         self._silent_limit = max(1, math.ceil(s.stale_after_s / s.poll_period_s))
 
-    # -- public API ----------------------------------------------------------------------
-    async def start(self) -> None:
-        """Start polling (returns at once; the port is opened in the background)."""
-        if self._task is not None:
-            return
-        self._stopping = False
-        self._task = asyncio.create_task(self._run(), name="tilt-sensor-link")
-
-    async def stop(self) -> None:
-        """Stop polling and close the port."""
-        self._stopping = True
-        if self._task is not None:
-            self._wake.set()
-            try:
-                async with asyncio.timeout(1.0):
-                    await self._task
-            except TimeoutError:
-                self._task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await self._task
-            except Exception:
-                log.exception("tilt sensor link task had failed")
-            self._task = None
-        self._drop_transport(None)
-        self._reading = None
-        self._was_valid = False
-
+    # -- public API (start/stop: PolledLink) ---------------------------------------------
     @property
     def latest(self) -> TiltReading | None:
         """The newest reading if younger than ``stale_after_s``, else ``None`` (rider input = stop)."""
@@ -283,82 +259,19 @@ class TiltSensorLink:
                 self._health.last_error or "no reply",
             )
 
-    def _connect(self) -> bool:
-        try:
-            self._transport = self._factory()
-        except DeviceError as exc:
-            self._health.last_error = str(exc)
-            return False
+    # -- PolledLink hooks ----------------------------------------------------------------
+    def _on_open(self) -> None:
         self._parser.reset()
-        self._health.connected = True
-        log.info("tilt sensor port %s open", self._transport.name)
-        return True
 
-    def _drop_transport(self, reason: str | None) -> None:
-        if self._transport is not None:
-            self._transport.close()
-            if reason is not None:
-                self._health.port_errors += 1
-                self._health.last_error = reason
-                log.warning("tilt sensor port %s lost: %s", self._transport.name, reason)
-        self._transport = None
-        self._health.connected = False
+    def _check_stale(self) -> None:
+        self.latest  # noqa: B018 - logs the stale transition even if nobody asks
 
-    async def _run(self) -> None:
-        loop = asyncio.get_running_loop()
-        s = self.settings
-        backoff = s.reconnect_initial_s
-        ever_connected = False
-        next_t = loop.time()
-        while not self._stopping:
-            if self._transport is None:
-                if self._connect():
-                    if ever_connected:
-                        self._health.reconnects += 1
-                    ever_connected = True
-                    next_t = loop.time()
-                else:
-                    self.latest  # noqa: B018 - logs the stale transition while disconnected
-                    await self._sleep(backoff)
-                    backoff = min(backoff * 2, s.reconnect_max_s)
-                    continue
-            try:
-                await self._exchange(loop)
-            except DeviceError as exc:
-                self._drop_transport(str(exc))
-                # back off before reopening: a port that opens but fails at once must not
-                # spin the event loop
-                await self._sleep(backoff)
-                backoff = min(backoff * 2, s.reconnect_max_s)
-                continue
-            except Exception as exc:  # a bug must not leave a stale reading looking valid
-                log.exception("tilt sensor link: unexpected error")
-                self._drop_transport(f"internal error: {exc!r}")
-                # back off before reopening: a port that opens but fails at once must not
-                # spin the event loop
-                await self._sleep(backoff)
-                backoff = min(backoff * 2, s.reconnect_max_s)
-                continue
-            self.latest  # noqa: B018 - logs the stale transition even if nobody asks
-            if self._health.consecutive_timeouts == 0:
-                backoff = s.reconnect_initial_s  # the device answered: a fresh back-off
-            next_t += s.poll_period_s
-            delay = next_t - loop.time()
-            if delay < -s.poll_period_s:  # overran (loop blocked): restart the grid
-                next_t = loop.time()
-                delay = 0.0
-            await self._sleep(max(delay, 0.0))
+    def _on_stopped(self) -> None:
+        self._reading = None
+        self._was_valid = False
 
-    async def _sleep(self, delay_s: float) -> None:
-        self._wake.clear()
-        if self._stopping:  # stop() may have set the wake-up before we cleared it
-            return
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(delay_s):
-                await self._wake.wait()
-
-    async def _exchange(self, loop: asyncio.AbstractEventLoop) -> None:
-        """One half-duplex request → reply; bookkeeping of every outcome."""
+    async def _exchange(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """One half-duplex request → reply; bookkeeping of every outcome. True: it answered."""
         t = self._transport
         assert t is not None
         h = self._health
@@ -390,7 +303,7 @@ class TiltSensorLink:
                         self._on_reading(self._reading)
                     except Exception:
                         log.exception("tilt sensor on_reading callback failed")
-                return
+                return True
         h.timeouts += 1
         h.consecutive_timeouts += 1
         h.last_error = f"no valid reply within {self.settings.request_timeout_s * 1000:.0f} ms"
@@ -402,3 +315,4 @@ class TiltSensorLink:
                 h.consecutive_timeouts,
                 h.last_error,
             )
+        return False
