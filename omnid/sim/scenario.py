@@ -30,14 +30,9 @@ def make_core(
     defaults), told where the simulated rig sits on the chair. ``joystick``: the rider has a
     joystick (``rider.joystick.enabled``); ``tilt``: and the head-tilt sensor (default: only
     when there is no joystick — a silent enabled source would stop the chair)."""
-    try:
-        from omnid.daemon.config import OmnidConfig  # type: ignore[import-not-found,unused-ignore]
-        from omnid.daemon.core import ControlCore  # type: ignore[import-not-found,unused-ignore]
-    except ImportError as exc:
-        raise OmnidError(
-            f"the daemon core is not available in this build ({exc}); "
-            "use `omnid simulate --drive T:LEFT:RIGHT` for an open-loop run"
-        ) from exc
+    from omnid.daemon.config import OmnidConfig
+    from omnid.daemon.core import ControlCore
+
     config = OmnidConfig()
     config = dataclasses.replace(
         config,
@@ -143,12 +138,7 @@ def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
     """Serve the simulated chair to an ``omnid run`` in another process, in real time."""
     if controller is not None:
         raise OmnidError("--serve runs the chair for an external daemon; --drive cannot be used")
-    try:
-        from omnid.devices.emulators.control_unit import (  # type: ignore[import-not-found,unused-ignore]
-            ControlUnitEmulator,
-        )
-    except ImportError as exc:
-        raise OmnidError(f"the control-unit emulator is not available ({exc})") from exc
+    from omnid.devices.emulators.control_unit import ControlUnitEmulator
     from omnid.sim.course import get_course
     from omnid.sim.frame_server import FrameServer
     from omnid.sim.simulator import SimSettings, Simulator

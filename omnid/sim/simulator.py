@@ -44,6 +44,9 @@ from omnid.config import require
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
+from omnid.devices.control_unit import ControlUnitStatus
+from omnid.devices.joystick import JoystickReading
+from omnid.devices.tilt import TiltReading
 from omnid.errors import OmnidError
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
@@ -249,27 +252,6 @@ class SimResult:
 # -- the control unit --------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class SimStatus:
-    """The control unit's reply as the daemon sees it (fields of ``ControlUnitStatus``)."""
-
-    seq: int
-    left_clocks: int
-    right_clocks: int
-    laser_on: bool
-    faults: int
-    timestamp_s: float
-
-
-def _make_status(**kw: Any) -> Any:
-    """A ``ControlUnitStatus`` when the device layer provides it, else a :class:`SimStatus`."""
-    try:
-        from omnid.devices.control_unit import ControlUnitStatus  # type: ignore[attr-defined,unused-ignore]
-    except ImportError:
-        return SimStatus(**kw)
-    return ControlUnitStatus(**kw)
-
-
 class DirectControlUnit:
     """The control unit's behaviour on the virtual clock, without the byte link.
 
@@ -301,7 +283,7 @@ class DirectControlUnit:
         self.right_duty = float(command.right_duty) if on else 0.0
         self.laser_on = bool(command.laser_on)
         left, right = self.plant.clocks()
-        return _make_status(
+        return ControlUnitStatus(
             seq=self.seq,
             left_clocks=left,
             right_clocks=right,
@@ -397,13 +379,9 @@ class EmulatedControlUnit:
 
 
 def make_control_unit(plant: Chair, kind: str, watchdog_s: float) -> Any:
-    """``emulator`` (bytes through the codec; falls back to ``direct`` when the device layer is
-    absent, with a warning) or ``direct``."""
+    """``emulator`` (bytes through the codec) or ``direct`` (the plant without a link)."""
     if kind == "emulator":
-        try:
-            return EmulatedControlUnit(plant, watchdog_s)
-        except ImportError as exc:
-            log.warning("control-unit emulator unavailable (%s); using the direct model", exc)
+        return EmulatedControlUnit(plant, watchdog_s)
     return DirectControlUnit(plant, watchdog_s)
 
 
@@ -449,42 +427,6 @@ class OpenLoopDriver:
 
 
 # -- rider ----------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class SimTiltReading:
-    """A head-tilt reading (the fields of ``omnid.devices.tilt.TiltReading``), deg and s."""
-
-    roll_deg: float
-    pitch_deg: float
-    timestamp_s: float
-
-
-def _tilt_reading_type() -> Any:
-    """The device layer's ``TiltReading`` when present, else :class:`SimTiltReading`."""
-    try:
-        from omnid.devices.tilt import TiltReading  # type: ignore[import-not-found,unused-ignore]
-    except ImportError:
-        return SimTiltReading
-    return TiltReading
-
-
-@dataclass(frozen=True)
-class SimJoystickReading:
-    """A joystick reading (the fields of ``omnid.devices.joystick.JoystickReading``)."""
-
-    forward: float
-    turn: float
-    timestamp_s: float
-
-
-def _joystick_reading_type() -> Any:
-    """The device layer's ``JoystickReading`` when present, else :class:`SimJoystickReading`."""
-    try:
-        from omnid.devices.joystick import JoystickReading  # type: ignore[import-not-found,unused-ignore]
-    except ImportError:
-        return SimJoystickReading
-    return JoystickReading
 
 
 class EmulatedTiltSensor:
@@ -552,7 +494,7 @@ class DirectTiltSensor:
 
     def __init__(self, script: HeadScript | ReactiveRider) -> None:
         self.script = script
-        self._reading = _tilt_reading_type()
+        self._reading = TiltReading
         self.unplugged = False
 
     def poll(self, now_s: float) -> Any:
@@ -663,14 +605,6 @@ class Simulator:
         self.calibration: Any = None
         self.install_s = 0.0
         if s.perception == "pipeline":
-            try:
-                import omnid.core.calibration
-                import omnid.core.pipeline  # noqa: F401
-            except ImportError as exc:
-                raise OmnidError(
-                    f"perception 'pipeline' needs the vision pipeline, which is not in this "
-                    f"build ({exc}); use perception 'truth'"
-                ) from exc
             self.install()
         box_rects = [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
         drop_rects = [
@@ -862,7 +796,7 @@ class Simulator:
         # A daemon core runs the real perception cycle (laser off → mask → laser on → base);
         # simple probes get a capture every period with the laser as it is.
         cycle = _Cycle() if hasattr(ctl, "capturing") and hasattr(ctl, "laser_on") else None
-        joy_reading = _joystick_reading_type()
+        joy_reading = JoystickReading
         last_pose: tuple[float, float, float] | None = None
 
         # Records preallocated for the whole run (no per-tick allocations; a soak's memory
