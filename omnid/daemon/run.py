@@ -24,9 +24,14 @@ Tasks:
   enabled but silent is a stop (rider mux).
 - systemd: READY=1 once the links run, WATCHDOG=1 from the control loop (so a hung loop is
   restarted), STATUS= once per ``service.status_period_s``.
+- start: :func:`omnid.daemon.preflight.preflight` — the same checks ``omnid run --check``
+  prints (calibration loads, ports, camera URL, teleop socket); an error refuses the start in
+  one line naming the key and the file.
 - signals: SIGTERM/SIGINT → stop at the emergency rate, send stop commands, close, exit 0;
-  SIGHUP → reload the configuration (an invalid file is refused, the old one stays; device
-  and perception settings apply at the next start).
+  SIGHUP → reload the configuration: the file is read and validated in a helper thread with a
+  timeout (``service.reload_timeout_s``), never on the event loop; an invalid or slow file is
+  refused and the old one stays; ``READY=1`` always follows ``RELOADING=1``; device and
+  perception settings apply at the next start.
 """
 
 from __future__ import annotations
@@ -85,33 +90,24 @@ def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
     return 0.5 * (t_req_s + t_got_s)
 
 
-def load_calibration(config: OmnidConfig) -> Any:
-    """The calibration for the perception cycle; ConfigError naming the file if it is missing
-    or invalid (the daemon refuses to start rather than drive blind)."""
-    from omnid.core.calibration import Calibration
-    from omnid.errors import ConfigError
-
-    path = Path(config.perception.calibration_path)
-    if not path.is_file():
-        raise ConfigError(
-            f"perception.calibration_path: {path} does not exist (write it with `omnid "
-            f"calibrate`, or set perception.enabled: false to run without forward motion)"
-        )
-    return Calibration.load(path)
-
-
 class Daemon:
     """Owns the core, the device links and the tasks (see the module docstring)."""
 
-    def __init__(self, holder: ConfigHolder, notifier: Notifier | None = None) -> None:
+    def __init__(
+        self, holder: ConfigHolder, notifier: Notifier | None = None, calibration: Any = None
+    ) -> None:
         self.holder = holder
         self.notifier = notifier or Notifier()
         self.core = ControlCore(holder.config)
         self.link = ControlUnitLink(holder.config.control_unit, on_status=self._on_status)
         self.stats = LoopStats()
-        self.calibration = (
-            load_calibration(holder.config) if holder.config.perception.enabled else None
-        )
+        if calibration is None and holder.config.perception.enabled:
+            from omnid.daemon.preflight import preflight
+
+            checks = preflight(holder.config, holder.path)
+            checks.raise_first_error(holder.path)
+            calibration = checks.calibration
+        self.calibration = calibration
         self.tilt: Any = None
         self.joystick: Any = None
         self.worker: Any = None
@@ -122,7 +118,8 @@ class Daemon:
         self._closers: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._last_cycle_s = time.monotonic()
-        self._link_was_ok = True
+        self._link_was_ok: bool | None = None  # None: not yet heard (start-up is not a loss)
+        self._reload_task: asyncio.Task[bool] | None = None
 
     @property
     def config(self) -> OmnidConfig:
@@ -194,10 +191,14 @@ class Daemon:
     # ---- the control loop ---------------------------------------------------------------
     def _cycle(self, now: float, urgent: bool = False) -> None:
         healthy = self.link.status is not None
-        if healthy != self._link_was_ok:
+        if healthy != self._link_was_ok and (healthy or self._link_was_ok is not None):
+            was = self._link_was_ok
             self._link_was_ok = healthy
             if healthy:
-                log.warning("control unit link back")
+                if was is None:
+                    log.info("control unit link up")
+                else:
+                    log.warning("control unit link back")
             else:
                 log.error(
                     "control unit link lost (%s): wheels stop once no status for %.2f s",
@@ -387,12 +388,36 @@ class Daemon:
                 await camera.close()
 
     # ---- life cycle ---------------------------------------------------------------------
-    def reload(self) -> bool:
+    def _on_sighup(self) -> None:
+        if self._reload_task is not None and not self._reload_task.done():
+            log.warning("SIGHUP ignored: a configuration reload is still running")
+            return
+        self._reload_task = asyncio.create_task(self.reload(), name="reload")
+
+    async def reload(self) -> bool:
+        """Re-read the configuration off the event loop (:meth:`ConfigHolder.reload_off_loop`)
+        and swap in a new core that keeps the map, odometry, ramps and rider state. READY=1
+        follows RELOADING=1 whatever happens."""
         self.notifier.reloading()
-        ok, why = self.holder.reload()
-        if not ok:
-            self.notifier.send(f"READY=1\nSTATUS=reload refused: {why}")
+        status = "reload failed"
+        try:
+            ok, why = await self.holder.reload_off_loop(self.config.service.reload_timeout_s)
+            if not ok:
+                status = f"reload refused: {why}"
+                return False
+            self._swap_core()
+            status = "reloaded"
+            log.info(
+                "configuration reloaded (device and perception settings apply at the next start)"
+            )
+            return True
+        except Exception:
+            log.exception("configuration reload failed; the running configuration stays")
             return False
+        finally:
+            self.notifier.send("READY=1\nSTATUS=" + status.replace("\n", " "))
+
+    def _swap_core(self) -> None:
         old = self.core
         new = ControlCore(self.holder.config, world_map=old.map)
         new.status, new.perception_time_s = old.status, old.perception_time_s
@@ -407,9 +432,6 @@ class Daemon:
             new.mux.tilt.calibrating = False
             new.mux.tilt.set_neutral(old.mux.tilt.roll_offset_deg, old.mux.tilt.pitch_offset_deg)
         self.core = new
-        self.notifier.send("READY=1\nSTATUS=reloaded")
-        log.info("configuration reloaded (device and perception settings apply at the next start)")
-        return True
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -419,7 +441,7 @@ class Daemon:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
-        loop.add_signal_handler(signal.SIGHUP, self.reload)
+        loop.add_signal_handler(signal.SIGHUP, self._on_sighup)
         if self.config.perception.enabled:
             # heavy imports now, before the control loop runs (an import inside a task would
             # hold the event loop for hundreds of ms)
@@ -471,17 +493,24 @@ class Daemon:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(close(), timeout=3.0)
         await self.link.stop()
+        self.holder.close()
         log.info("omnid stopped; wheels at zero")
 
 
 def main(config_path: str, stats_out: str | None = None) -> int:
     """Load the configuration and calibration (errors name file and key) and run until
     SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit."""
+    from omnid.daemon.preflight import preflight
+
     holder = ConfigHolder(config_path)
+    checks = preflight(holder.config, config_path)
+    checks.raise_first_error(config_path)
+    for warning in checks.warnings:
+        log.warning("%s: %s", warning.what, warning.detail)
     daemon_ref: list[Daemon] = []
 
     async def amain() -> int:
-        d = Daemon(holder)
+        d = Daemon(holder, calibration=checks.calibration)
         daemon_ref.append(d)
         return await d.run()
 
