@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name:18s} {get_scene(name).description}")
         return 0
     if not args.name or not args.out:
-        raise InputError("omnid scene: give a scene NAME and --out DIR (or --list)")
+        raise InputError("give a scene NAME and --out DIR (or --list)")
     scene = get_scene(args.name)  # an unknown name is a one-line InputError listing the known
 
     from omnid.core.geometry import StereoRig
