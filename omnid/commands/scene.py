@@ -71,9 +71,10 @@ def run(args: argparse.Namespace) -> int:
 
     from omnid.core.geometry import StereoRig
     from omnid.core.types import PointClass
-    from omnid.experiments.scenes import floor_capture, misaligned_rig, render_hits, scene_hits
+    from omnid.experiments.scenes import floor_capture, render_hits, scene_hits
     from omnid.io_images import write_bytes_atomic, write_png
     from omnid.sim.render import RenderOptions
+    from omnid.sim.rigs import misaligned_rig
 
     H = scene.mount.height_mm
     rig = misaligned_rig(H) if args.misaligned else StereoRig.nominal(floor_depth_mm=H)
