@@ -157,6 +157,8 @@ def load_yaml(path: str | Path) -> Any:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p}: not a text (YAML) file — a picture or other binary?") from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -115,7 +115,7 @@ def write_floor_capture(directory: str, seed: int = 0) -> None:
     import cv2
 
     from omnid.sim.render import render_capture
-    from omnid.sim.simulator import misaligned_rig
+    from omnid.sim.rigs import misaligned_rig
     from omnid.sim.world import RigMount
 
     h = RigMount().height_mm

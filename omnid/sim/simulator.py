@@ -38,7 +38,6 @@ one frame every period with the laser as it is (policy ``snapshot``).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -69,6 +68,7 @@ from omnid.sim.faults import FAULT_KINDS, Fault, FaultInjector, FaultKind, Injec
 from omnid.sim.open_loop import OpenLoopCommand, OpenLoopDriver
 from omnid.sim.results import SimResult, chair_clearance_mm, world_rects
 from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
+from omnid.sim.rigs import misaligned_rig
 from omnid.sim.settings import PerceptionMode, SimSettings
 from omnid.sim.story import Observation, ReactiveRider
 from omnid.sim.world import RigMount, cast_laser, rig_to_world
@@ -95,27 +95,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 Pose = tuple[float, float, float]
-
-
-def misaligned_rig(floor_depth_mm: float = 1100.0) -> StereoRig:
-    """The rig "as installed": mirror centres a few px off, f/K differing by a few per cent and
-    small camera rotations (1.5° and −1°) — what calibration (thesis 6.3) must find out."""
-    nom = StereoRig.nominal(floor_depth_mm=floor_depth_mm)
-    c1 = dataclasses.replace(
-        nom.cam1,
-        center_row_px=nom.cam1.center_row_px + 3.0,
-        center_col_px=nom.cam1.center_col_px - 2.0,
-        f_over_k_px=nom.cam1.f_over_k_px * 1.03,
-        rotation_rad=math.radians(1.5),
-    )
-    c2 = dataclasses.replace(
-        nom.cam2,
-        center_row_px=nom.cam2.center_row_px - 2.0,
-        center_col_px=nom.cam2.center_col_px + 4.0,
-        f_over_k_px=nom.cam2.f_over_k_px * 0.98,
-        rotation_rad=math.radians(-1.0),
-    )
-    return StereoRig(c1, c2, floor_depth_mm)
 
 
 class Simulator:
