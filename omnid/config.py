@@ -345,7 +345,8 @@ def load_yaml(path: str | Path) -> Any:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(
-            f"{p}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start})"
+            f"{p}: not a text (YAML) file: byte 0x{raw[exc.start]:02x} at offset {exc.start} "
+            "is not UTF-8 (a picture or other binary?)"
         ) from None
     return parse_yaml(text, str(p))
 

@@ -13,7 +13,10 @@ def register(subparsers: Any) -> None:
         description="Run the wheelchair control daemon until SIGTERM (SIGHUP reloads the config).",
     )
     parser.add_argument(
-        "--config", default="/etc/omnid/omnid.yaml", help="configuration file (etc/omnid.yaml)"
+        "--config",
+        default="/etc/omnid/omnid.yaml",
+        help="configuration file (default /etc/omnid/omnid.yaml, where the service installs "
+        "the repository's etc/omnid.yaml)",
     )
     parser.add_argument(
         "--check",

@@ -66,14 +66,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name:18s} {get_scene(name).description}")
         return 0
     if not args.name or not args.out:
-        raise InputError("omnid scene: give a scene NAME and --out DIR (or --list)")
+        raise InputError("give a scene NAME and --out DIR (or --list)")
     scene = get_scene(args.name)  # an unknown name is a one-line InputError listing the known
 
     from omnid.core.geometry import StereoRig
     from omnid.core.types import PointClass
-    from omnid.experiments.scenes import floor_capture, misaligned_rig, render_hits, scene_hits
+    from omnid.experiments.scenes import floor_capture, render_hits, scene_hits
     from omnid.io_images import write_bytes_atomic, write_png
     from omnid.sim.render import RenderOptions
+    from omnid.sim.rigs import misaligned_rig
 
     H = scene.mount.height_mm
     rig = misaligned_rig(H) if args.misaligned else StereoRig.nominal(floor_depth_mm=H)

@@ -9,12 +9,15 @@ Tasks:
   ``control_unit.command_period_s``; its replies arrive through ``core.on_status``. The core
   stops the chair when no status came for ``control.status_timeout_s``, and at once when the
   port is gone (``core.link_ok``).
-- perception cycle (``perception.enabled``): laser off → wait until the control unit *reports*
-  it off → flush stale frames → mask pair → laser on → wait until reported on → flush → base
-  pair → ``perceive`` in a separate **worker process** (:mod:`omnid.daemon.perception_worker`:
-  no GIL shared with the control loop; exceptions, crashes and hangs cost one cycle and restart
-  the worker) → ``core.on_perception(cloud, t_base)``. While frames are taken ``core.capturing``
-  caps the speed (``perception.capture_policy: limit``); the cloud is placed by odometry anyway.
+- perception (``perception.enabled``): the capture cycle :class:`~omnid.daemon.capture.CaptureCycle`
+  (the same state machine the simulator drives) is told the laser state of every control-unit
+  reply and fed camera frames; it decides the laser bit of the next command and which frames
+  make a job (the thesis' cycle: laser off → reported off → flushed mask pair → laser on →
+  reported on → flushed base pair). Each job is perceived in a separate **worker process**
+  (:mod:`omnid.daemon.perception_worker`: no GIL shared with the control loop; exceptions,
+  crashes and hangs cost one cycle and restart the worker) → ``core.on_perception(cloud,
+  t_base)``. While frames are taken ``core.capturing`` caps the speed
+  (``perception.capture_policy: limit``); the cloud is placed by odometry anyway.
   A missing or invalid calibration file refuses the start (one line naming the file); with
   ``perception.enabled: false`` the daemon runs and refuses forward motion (no free space seen).
 - rider inputs: teleop keyboard socket; GS311 tilt sensor (:class:`TiltSensorLink`, readings
@@ -46,6 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from omnid.daemon.capture import CaptureCycle, CaptureFailure, CaptureSettings, Frame
 from omnid.daemon.config import ConfigHolder, OmnidConfig
 from omnid.daemon.core import ControlCore
 from omnid.daemon.service import Notifier
@@ -120,6 +124,10 @@ class Daemon:
         self._last_cycle_s = time.monotonic()
         self._link_was_ok: bool | None = None  # None: not yet heard (start-up is not a loss)
         self._reload_task: asyncio.Task[bool] | None = None
+        self.capture_cycle = CaptureCycle(
+            CaptureSettings.from_config(holder.config.perception), start_s=time.monotonic()
+        )
+        self._capture_wake = asyncio.Event()  # a laser report arrived
 
     @property
     def config(self) -> OmnidConfig:
@@ -128,6 +136,8 @@ class Daemon:
     # ---- inputs -------------------------------------------------------------------------
     def _on_status(self, status: Any) -> None:
         self.core.on_status(status)
+        self.capture_cycle.on_laser_report(bool(status.laser_on), float(status.timestamp_s))
+        self._capture_wake.set()
 
     def _on_tilt(self, reading: Any) -> None:
         before = self.core.mux.tilt.active
@@ -273,55 +283,12 @@ class Daemon:
         )
 
     # ---- perception ---------------------------------------------------------------------
-    async def _wait_laser(self, on: bool, timeout_s: float) -> bool:
-        """Wait until a control-unit reply *after now* reports the laser ``on``; False on
-        timeout (the relay may lag the command)."""
-        t_set = time.monotonic()
-        end = t_set + timeout_s
-        while time.monotonic() < end:
-            st = self.link.status
-            if st is not None and bool(st.laser_on) == on and st.timestamp_s > t_set:
-                return True
-            await asyncio.sleep(0.003)
-        return False
-
-    async def _read(self, camera: Any) -> tuple[Any, Any, float]:
+    async def _read(self, camera: Any) -> Frame:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
-        return img1, img2, frame_time(float(t_cam), t_req, time.monotonic())
+        return Frame(frame_time(float(t_cam), t_req, time.monotonic()), (img1, img2))
 
-    async def capture(self, camera: Any) -> Any:
-        """One mask/base stereo capture with the laser switched through the control unit."""
-        from omnid.core.types import StereoCapture
-
-        p = self.config.perception
-        t0 = time.monotonic()
-        try:
-            self.core.capturing = True
-            self.core.laser_on = False
-            if not await self._wait_laser(False, p.laser_timeout_s):
-                raise TimeoutError(
-                    f"control unit did not report the laser off within {p.laser_timeout_s:g} s"
-                )
-            if p.flush_frames:
-                await camera.flush()
-            m1, m2, t_mask = await self._read(camera)
-            self.core.laser_on = True
-            if not await self._wait_laser(True, p.laser_timeout_s):
-                raise TimeoutError(
-                    f"control unit did not report the laser on within {p.laser_timeout_s:g} s"
-                )
-            if p.flush_frames:
-                await camera.flush()
-            b1, b2, t_base = await self._read(camera)
-        finally:
-            self.core.capturing = False
-            self.core.laser_on = True
-        self.stats.note(self.stats.capture_s, time.monotonic() - t0)
-        self.stats.note(self.stats.mask_to_base_s, t_base - t_mask)
-        return StereoCapture(m1, b1, m2, b2, timestamp_s=t_base)
-
-    def _perception_error(self, what: str, exc: BaseException) -> None:
+    def _perception_error(self, what: str, exc: BaseException | str) -> None:
         self.stats.perception_errors += 1
         n = self.stats.perception_errors
         if n == 1 or n % 20 == 0:
@@ -332,60 +299,100 @@ class Daemon:
                 exc,
             )
 
+    def _apply_capture(self) -> None:
+        """The capture cycle's laser and ``capturing`` requests into the core (whose next cycle
+        puts the laser bit on the wire)."""
+        cycle = self.capture_cycle
+        self.core.laser_on = cycle.laser_on
+        self.core.capturing = cycle.capturing
+
+    async def _capture_wait(self, until_s: float) -> None:
+        """Sleep until ``until_s``, a laser report or a stop request, whichever comes first."""
+        rest = until_s - time.monotonic()
+        if rest <= 0.0:
+            return
+        self._capture_wake.clear()
+        waits = [asyncio.ensure_future(e.wait()) for e in (self._capture_wake, self._stop)]
+        try:
+            await asyncio.wait(waits, timeout=min(rest, 1.0), return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waits:
+                w.cancel()
+
     async def perception_loop(self) -> None:
-        from omnid.core.pipeline import PerceptionSettings as PipelineSettings
+        from omnid.daemon.capture import pipeline_arguments
         from omnid.daemon.perception_worker import PerceptionFailed, PerceptionWorker
         from omnid.devices.camera import open_camera
         from omnid.errors import DeviceError
 
         cfg = self.config
         p = cfg.perception
+        method, settings = pipeline_arguments(cfg)
         self.worker = PerceptionWorker(
             self.calibration,
-            p.method,
-            PipelineSettings(detection=cfg.detection),
+            method,
+            settings,
             timeout_s=p.worker_timeout_s,
             nice=p.worker_nice,
         )
         self._closers.append(self.worker.close)
         await self.worker.start()
+        cycle = self.capture_cycle
         camera: Any = None
+
+        async def close_camera() -> None:
+            nonlocal camera
+            if camera is not None:
+                with contextlib.suppress(Exception):
+                    await camera.close()
+                camera = None
+
         while not self._stop.is_set():
-            started = time.monotonic()
             try:
-                if camera is None:
-                    camera = open_camera(cfg.camera)
-                cap = await self.capture(camera)
-                w0 = time.monotonic()
-                cloud = await self.worker.perceive(cap)
-                t_done = time.monotonic()
-                self.core.on_perception(cloud, cap.timestamp_s)
-                self.stats.note(self.stats.perception_s, t_done - w0)
-                self.stats.note(self.stats.perception_latency_s, time.monotonic() - cap.timestamp_s)
-                self.stats.perception_cycles += 1
-                if self.stats.perception_errors and self.stats.perception_cycles == 1:
-                    log.info("perception running (%d dots)", len(cloud))
+                for out in cycle.poll(time.monotonic()):
+                    if isinstance(out, CaptureFailure):
+                        self._perception_error(out.kind, out.message)
+                        if out.kind == "camera":
+                            await close_camera()
+                        continue
+                    self.stats.note(self.stats.capture_s, time.monotonic() - out.started_s)
+                    if out.masks:
+                        self.stats.note(self.stats.mask_to_base_s, out.t_s - out.masks[0].t_s)
+                    w0 = time.monotonic()
+                    cloud = await self.worker.perceive(out.stereo_capture())
+                    t_done = time.monotonic()
+                    self.core.on_perception(cloud, out.t_s)
+                    self.stats.note(self.stats.perception_s, t_done - w0)
+                    self.stats.note(self.stats.perception_latency_s, time.monotonic() - out.t_s)
+                    self.stats.perception_cycles += 1
+                    if self.stats.perception_errors and self.stats.perception_cycles == 1:
+                        log.info("perception running (%d dots)", len(cloud))
+                self._apply_capture()
+                if not cycle.wants_frame():
+                    await self._capture_wait(cycle.next_poll_s)
+                    continue
+                try:
+                    if camera is None:
+                        camera = open_camera(cfg.camera)
+                    if cycle.flush_needed:
+                        await camera.flush()
+                    rest = max(cycle.frame_deadline_s - time.monotonic(), 0.001)
+                    cycle.on_frame(await asyncio.wait_for(self._read(camera), rest))
+                except TimeoutError as exc:
+                    if isinstance(exc, DeviceError):
+                        cycle.frame_failed(str(exc))
+                    # else: past the cycle's frame deadline; its next poll says so
+                except (DeviceError, OSError) as exc:
+                    cycle.frame_failed(f"{type(exc).__name__}: {exc}")
             except PerceptionFailed as exc:
                 self._perception_error("worker", exc)
-            except (DeviceError, OSError) as exc:
-                self._perception_error("camera", exc)
-                if camera is not None:
-                    with contextlib.suppress(Exception):
-                        await camera.close()
-                    camera = None
-            except TimeoutError as exc:
-                self._perception_error("laser", exc)
             except asyncio.CancelledError:
                 raise
             except Exception as exc:  # a bug here must not end perception for good
                 self._perception_error("internal", exc)
                 log.debug("perception cycle exception", exc_info=True)
-            rest = p.period_s - (time.monotonic() - started)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._stop.wait(), timeout=max(rest, 0.01))
-        if camera is not None:
-            with contextlib.suppress(Exception):
-                await camera.close()
+                await self._capture_wait(time.monotonic() + 0.01)
+        await close_camera()
 
     # ---- life cycle ---------------------------------------------------------------------
     def _on_sighup(self) -> None:

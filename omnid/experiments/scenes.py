@@ -18,10 +18,9 @@ Used by ``tools/eval_scenes.py``, ``omnid experiment table74`` and ``omnid scene
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,30 +30,11 @@ from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
 from omnid.sim.render import RenderOptions, render_camera_pair
+from omnid.sim.rigs import misaligned_rig
 from omnid.sim.scenes import Scene, get_scene
 from omnid.sim.world import LaserHits, cast_laser
 
 METHODS: tuple[str, ...] = ("best", "thesis")
-
-
-def misaligned_rig(floor_depth_mm: float = 1100.0) -> StereoRig:
-    """Centres a few px off, f/K +3 % / −2 %, rotations +1.5° / −1° (as the tests use)."""
-    nom = StereoRig.nominal(floor_depth_mm=floor_depth_mm)
-    c1 = replace(
-        nom.cam1,
-        center_row_px=nom.cam1.center_row_px + 3.0,
-        center_col_px=nom.cam1.center_col_px - 2.0,
-        f_over_k_px=nom.cam1.f_over_k_px * 1.03,
-        rotation_rad=math.radians(1.5),
-    )
-    c2 = replace(
-        nom.cam2,
-        center_row_px=nom.cam2.center_row_px - 2.0,
-        center_col_px=nom.cam2.center_col_px + 4.0,
-        f_over_k_px=nom.cam2.f_over_k_px * 0.98,
-        rotation_rad=math.radians(-1.0),
-    )
-    return StereoRig(c1, c2, floor_depth_mm)
 
 
 def scene_hits(scene: Scene, rig: StereoRig) -> LaserHits:

@@ -124,7 +124,7 @@ def write_floor_capture(directory: str, seed: int = 0) -> None:
     import cv2
 
     from omnid.sim.render import render_capture
-    from omnid.sim.simulator import misaligned_rig
+    from omnid.sim.rigs import misaligned_rig
     from omnid.sim.world import RigMount
 
     h = RigMount().height_mm
@@ -167,16 +167,11 @@ def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
 
     import numpy as np
 
-    from omnid.sim.simulator import _clearance, _perimeter
+    from omnid.sim.results import chair_clearance_mm, world_rects
 
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
-    boxes = np.array(
-        [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
-    ).reshape(-1, 4)
-    drops = np.array(
-        [(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs]
-    ).reshape(-1, 4)
+    boxes, drops = world_rects(course.world)
     pty = emu.open_pty()
     print(f"control unit: {pty}", flush=True)
     print(f"cameras: sim+unix://{args.serve}", flush=True)
@@ -190,10 +185,7 @@ def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
                 time.sleep(0.02)
                 _ = emu.clocks  # advance the plant to now
                 chair = sim.chair
-                supports = np.array(list(chair.support_points().values()))
-                closest = min(
-                    closest, _clearance(_perimeter(chair), boxes), _clearance(supports, drops)
-                )
+                closest = min(closest, chair_clearance_mm(chair, boxes, drops))
                 for c in chair.contacts(course.world):
                     contacts += 1
                     print(f"t={time.monotonic() - t0:.2f} s: {c.kind} ({c.part})", flush=True)

@@ -7,8 +7,9 @@ world. The vision rig sits ``RigMount.x_offset_mm`` ahead of the axle midpoint w
 the baseline, Z down from the mirror plane), so a rig point (X, Y, Z) is the robot-frame point
 (X + x_offset, −Y) at height h = H − Z (the inverse of ``occupancy.rig_to_robot``).
 
-:func:`cast_laser` follows each ray of the :class:`~omnid.core.laser.DotPattern` from the rig
-origin (the laser sits midway between the mirrors, thesis 6.3.1.3) to the first surface it meets —
+:func:`cast_laser` follows each beam of a :class:`~omnid.sim.laser.LaserProjector` from the laser's
+source (near the baseline's midpoint, but not in the mirror plane: SPEC §2) to the first surface it
+meets —
 the floor, the lowered floor of a :class:`DropOff` (or the pit's far wall), a box top or a box side
 — and then asks, for each mirror, whether the dot is inside that mirror's disk and whether the line
 from the dot to the mirror is blocked by a box or by the ground at a drop-off edge. Everything is
@@ -30,6 +31,7 @@ from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.triangulate import TriangulationMethod
 from omnid.core.types import PointClass, PointCloud
+from omnid.sim.laser import LaserProjector, LaserRays
 
 #: Boxes reach this far below the floor so that a box standing in a pit rests on its bottom
 #: (the floor itself stops every ray and sight line long before it matters elsewhere), mm.
@@ -158,6 +160,7 @@ class LaserHits:
     truth       (N,) :class:`PointClass` codes (uint8): floor, obstacle (a box), drop-off (lowered
                 floor or a pit wall)
     pixels      (N, 4) ideal image positions r1, c1, r2, c2 of the dots, px (NaN where none)
+    brightness  (N,) relative power of each beam (the grating's order envelope), 1 on its axis
     """
 
     xyz: NDArray[np.float64]
@@ -165,6 +168,11 @@ class LaserHits:
     visible2: NDArray[np.bool_]
     truth: NDArray[np.uint8]
     pixels: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
+    brightness: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        if self.brightness is None:
+            object.__setattr__(self, "brightness", np.ones(len(self.xyz)))
 
     @property
     def visible(self) -> NDArray[np.bool_]:
@@ -243,40 +251,58 @@ def _blocked(
     return np.any(hi - lo > _GRAZE, axis=0)
 
 
+Laser = LaserProjector | LaserRays | DotPattern
+
+
 @functools.lru_cache(maxsize=8)
-def _pattern_directions(pattern: DotPattern) -> NDArray[np.float64]:
-    """``pattern.directions()``, computed once per pattern (read-only): the simulator casts the
-    same pattern every perception cycle."""
+def _pattern_rays(pattern: DotPattern) -> LaserRays:
+    """The old slope lattice as beams from the rig origin (computed once per pattern)."""
     d = pattern.directions()
-    d.setflags(write=False)
-    return d
+    n = len(d)
+    rays = LaserRays(
+        np.zeros(3), d, np.ones(n), np.zeros((n, 2), dtype=np.int64), np.full(n, -1, np.int64)
+    )
+    for arr in (rays.origin_mm, rays.directions, rays.brightness):
+        arr.setflags(write=False)
+    return rays
+
+
+def laser_rays(laser: Laser) -> LaserRays:
+    """The beams of any laser description: a projector, its rays, or the old ``DotPattern``."""
+    if isinstance(laser, LaserRays):
+        return laser
+    if isinstance(laser, LaserProjector):
+        return laser.rays()
+    return _pattern_rays(laser)
 
 
 def cast_laser(
     world: World,
     pose: ArrayLike,
     mount: RigMount,
-    pattern: DotPattern,
+    laser: Laser,
     rig: StereoRig,
 ) -> LaserHits:
-    """Cast every ray of ``pattern`` into ``world`` with the chair at ``pose``.
+    """Cast every beam of ``laser`` into ``world`` with the chair at ``pose``.
 
-    Each ray starts at the rig origin and stops at the first of: the floor (h = 0), the lowered
-    floor or the far wall of a drop-off pit, a box top or a box side. A dot is visible in mirror i
-    (at rig (0, Y_i, 0)) when its image lies inside that mirror's disk and the segment from the dot
-    to the mirror passes through no box and does not go below the floor (a drop-off's near edge
-    hides the pit bottom right behind it).
+    Each beam starts at the laser's source and stops at the first of: the floor (h = 0), the
+    lowered floor or the far wall of a drop-off pit, a box top or a box side. A dot is visible in
+    mirror i (at rig (0, Y_i, 0)) when its image lies inside that mirror's disk and the segment
+    from the dot to the mirror passes through no box and does not go below the floor (a drop-off's
+    near edge hides the pit bottom right behind it).
     """
     px, py, th = _pose(pose)
-    H = mount.height_mm
-    d_rig = _pattern_directions(pattern)
+    rays = laser_rays(laser)
+    d_rig = rays.directions
     n = len(d_rig)
-    origin_w = rig_to_world(np.zeros((1, 3)), (px, py, th), mount)[0]
+    origin_w = rig_to_world(rays.origin_mm[None, :], (px, py, th), mount)[0]
+    if not origin_w[2] > 0:
+        raise ValueError("cast_laser: the laser's source must be above the floor")
     o = np.broadcast_to(origin_w, (n, 3)).copy()
     d = _directions_to_world(d_rig, th)
 
     # Floor at h = 0 (every ray points down, so every ray meets it).
-    t_floor = H / d[:, 2] * -1.0  # d[:, 2] < 0 (h decreases along the ray)
+    t_floor = origin_w[2] / -d[:, 2]  # d[:, 2] < 0 (h decreases along the ray)
     t = t_floor.copy()
     truth = np.full(n, PointClass.FLOOR, dtype=np.uint8)
 
@@ -285,7 +311,7 @@ def cast_laser(
     pits = world._pit_array()
     if len(pits):
         tn, tf = _slab(o, d, pits)
-        enters = (tn <= tf) & (np.abs(tn - t_floor) <= 1e-6 * H)  # (P, N)
+        enters = (tn <= tf) & (np.abs(tn - t_floor) <= 1e-6 * origin_w[2])  # (P, N)
         if np.any(enters):
             k = np.argmax(enters, axis=0)
             hit = enters.any(axis=0)
@@ -318,7 +344,7 @@ def cast_laser(
         seen &= ~_blocked(hit_w, end, boxes)
         seen &= ~_under_ground(hit_w, end, pits)
         vis.append(seen)
-    return LaserHits(xyz, vis[0], vis[1], truth, pixels)
+    return LaserHits(xyz, vis[0], vis[1], truth, pixels, np.asarray(rays.brightness, np.float64))
 
 
 def _under_ground(

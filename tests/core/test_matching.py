@@ -124,7 +124,7 @@ def test_each_dot_used_once_and_indices_consistent(rig, calib) -> None:
 @pytest.fixture(scope="module")
 def sim_calib() -> tuple[StereoRig, Calibration]:
     """The closed-loop simulator's installed rig: misaligned, calibrated on its floor capture."""
-    from omnid.sim.simulator import misaligned_rig as sim_rig
+    from omnid.sim.rigs import misaligned_rig as sim_rig
 
     rig = sim_rig(H)
     cap = render_capture(rig, DotPattern().on_plane(H), seed=7919)

@@ -113,7 +113,7 @@ def test_daemon_drives_through_pty_and_stops_on_sigterm(tmp_path: Path, emulator
         assert emu.applied_duty == (0.0, 0.0)
         err = proc.stderr.read() if proc.stderr else ""
         assert "reload refused" in err and "control.rate_hz" in err
-        assert "not UTF-8" in err and "Traceback" not in err
+        assert "is not UTF-8" in err and "Traceback" not in err
         assert "wheels at zero" in err
     finally:
         if proc.poll() is None:
