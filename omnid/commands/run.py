@@ -29,6 +29,11 @@ def register(subparsers: Any) -> None:
         metavar="JSON",
         help="at exit, write the control-loop and perception timings here (benchmarks)",
     )
+    parser.add_argument(
+        "--inject-faults",
+        action="store_true",
+        help=argparse.SUPPRESS,  # tools/fault_figures.py only (signals inject faults)
+    )
     parser.set_defaults(func=handle)
 
 
@@ -50,4 +55,4 @@ def handle(args: argparse.Namespace) -> int:
         return 2 if n_err else 0
     from omnid.daemon.run import main
 
-    return main(args.config, stats_out=args.stats_out)
+    return main(args.config, stats_out=args.stats_out, inject_faults=args.inject_faults)
