@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"(for --extra also: {extras} — a wall or a box drawn at random from the seed)")
         return 0
     if not args.name or not args.out:
-        raise InputError("omnid scene: give a scene NAME and --out DIR (or --list)")
+        raise InputError("give a scene NAME and --out DIR (or --list)")
     scene = get_scene(args.name)  # an unknown name is a one-line InputError listing the known
     for name in args.extra:
         if name not in RANDOM_EXTRAS:
@@ -198,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
 
     H = scene.mount.height_mm
     if args.misaligned and args.rig not in (None, "misaligned"):
-        raise InputError("omnid scene: --misaligned contradicts --rig " + args.rig)
+        raise InputError("--misaligned contradicts --rig " + args.rig)
     rig_spec = args.rig or ("misaligned" if args.misaligned else "nominal")
     rig = specs.rig_from_spec(rig_spec, args.seed, H)
     laser = specs.laser_from_spec(args.laser, args.seed, specs.parse_params(args.laser_param))

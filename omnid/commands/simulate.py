@@ -46,10 +46,20 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=handle)
 
 
-def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
+def add_run_arguments(
+    p: argparse.ArgumentParser,
+    default_out: str,
+    default_duration_s: float = 45.0,
+    duration_help: str = "simulated seconds",
+) -> None:
     """Options shared by ``simulate`` and ``demo``."""
     p.add_argument("--course", default="builtin", help="builtin (default), empty-room or box-ahead")
-    p.add_argument("--duration-s", type=float, default=45.0, help="simulated seconds (45)")
+    p.add_argument(
+        "--duration-s",
+        type=float,
+        default=default_duration_s,
+        help=f"{duration_help} ({default_duration_s:g})",
+    )
     p.add_argument(
         "--perception",
         choices=["truth", "pipeline", "off"],

@@ -26,16 +26,25 @@ log = logging.getLogger(__name__)
 def make_core(
     rig_x_offset_mm: float = 300.0, joystick: bool = False, tilt: bool | None = None
 ) -> Any:
-    """The daemon's ``ControlCore`` with its default configuration (``etc/omnid.yaml``
-    defaults), told where the simulated rig sits on the chair. ``joystick``: the rider has a
-    joystick (``rider.joystick.enabled``); ``tilt``: and the head-tilt sensor (default: only
-    when there is no joystick — a silent enabled source would stop the chair)."""
+    """The daemon's ``ControlCore`` with the shipped configuration (``etc/omnid.yaml`` = the
+    built-in defaults) except for what a scripted rider cannot do: hold the head still for the
+    neutral-pose calibration at start (``rider.tilt.neutral_calibration_s: 0``: the scripted
+    head's neutral is level) and release a command after a fault (``control.rearm_after_fault:
+    false``: the scripts hold their command through faults). Told where the simulated rig sits
+    on the chair. ``joystick``: the rider has a joystick (``rider.joystick.enabled``); ``tilt``:
+    and the head-tilt sensor (default: only when there is no joystick — a silent enabled source
+    would stop the chair)."""
     from omnid.daemon.config import OmnidConfig
     from omnid.daemon.core import ControlCore
 
     config = OmnidConfig()
     config = dataclasses.replace(
         config,
+        control=dataclasses.replace(config.control, rearm_after_fault=False),
+        rider=dataclasses.replace(
+            config.rider,
+            tilt=dataclasses.replace(config.rider.tilt, neutral_calibration_s=0.0),
+        ),
         perception=dataclasses.replace(config.perception, rig_x_offset_mm=rig_x_offset_mm),
     )
     if tilt is None:
@@ -158,16 +167,11 @@ def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
 
     import numpy as np
 
-    from omnid.sim.simulator import _clearance, _perimeter
+    from omnid.sim.results import chair_clearance_mm, world_rects
 
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
-    boxes = np.array(
-        [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
-    ).reshape(-1, 4)
-    drops = np.array(
-        [(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs]
-    ).reshape(-1, 4)
+    boxes, drops = world_rects(course.world)
     pty = emu.open_pty()
     print(f"control unit: {pty}", flush=True)
     print(f"cameras: sim+unix://{args.serve}", flush=True)
@@ -181,10 +185,7 @@ def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
                 time.sleep(0.02)
                 _ = emu.clocks  # advance the plant to now
                 chair = sim.chair
-                supports = np.array(list(chair.support_points().values()))
-                closest = min(
-                    closest, _clearance(_perimeter(chair), boxes), _clearance(supports, drops)
-                )
+                closest = min(closest, chair_clearance_mm(chair, boxes, drops))
                 for c in chair.contacts(course.world):
                     contacts += 1
                     print(f"t={time.monotonic() - t0:.2f} s: {c.kind} ({c.part})", flush=True)

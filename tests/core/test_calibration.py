@@ -14,7 +14,7 @@ from omnid.core.calibration import Calibration, calibrate_from_capture, fit_mirr
 from omnid.core.geometry import StereoRig
 from omnid.core.laser import DotPattern
 from omnid.core.matching import fit_thesis_polynomials, predict_thesis
-from omnid.errors import CalibrationError, ConfigError
+from omnid.errors import CalibrationError, ConfigError, InputError
 from omnid.sim.render import render_capture
 
 H = 1100.0
@@ -96,7 +96,7 @@ def test_load_names_the_bad_key(calib: Calibration, tmp_path: Path, edit, key: s
 def test_failed_save_leaves_old_file_intact(calib: Calibration, tmp_path: Path) -> None:
     target = tmp_path / "taken"
     target.mkdir()  # a directory cannot be replaced by a file
-    with pytest.raises(OSError):
+    with pytest.raises(InputError, match="taken: cannot write"):
         calib.save(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
 
