@@ -207,6 +207,7 @@ def test_scene_with_a_random_rig_laser_and_spots_and_extra_captures(
         (["--spot-param", "sigma_px=oops"], "spots.sigma_px"),
         (["--rig", "bent"], "rig 'bent'"),
         (["--extra", "no_such_scene"], "no_such_scene"),
+        (["--laser", "no/such/laser.json"], "cannot read"),
     ],
 )
 def test_bad_scene_options_are_one_line(tmp_path: Path, capsys, args, words) -> None:

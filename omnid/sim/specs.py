@@ -22,6 +22,7 @@ Every value is validated by the dataclass it builds; a wrong key or value is a
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -85,7 +86,15 @@ def _file_mapping(spec: str, entry: str) -> Mapping[str, Any] | None:
     path = Path(spec)
     if not (path.suffix.lower() in (".yaml", ".yml", ".json") or path.is_file()):
         return None
-    data = load_yaml(path)
+    if path.suffix.lower() == ".json":  # a truth.json is large: plain JSON, not the YAML loader
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+        except ValueError as exc:
+            raise ConfigError(f"{path}: not valid JSON ({exc})") from None
+    else:
+        data = load_yaml(path)
     if isinstance(data, Mapping) and entry in data and isinstance(data[entry], Mapping):
         data = data[entry]
     if not isinstance(data, Mapping):
