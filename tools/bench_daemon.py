@@ -117,10 +117,10 @@ def main() -> None:
 
     from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
-    from omnid.core.laser import DotPattern
     from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
     from omnid.devices.emulators.gs311 import Gs311Emulator
     from omnid.sim.frame_server import FrameServer
+    from omnid.sim.laser import ideal_lattice
     from omnid.sim.render import render_capture
 
     class TimedUnit(ControlUnitEmulator):
@@ -139,7 +139,7 @@ def main() -> None:
 
     tmp = Path(tempfile.mkdtemp(prefix="omnid-bench-"))
     rig = StereoRig.nominal(floor_depth_mm=1100.0)
-    cap = render_capture(rig, DotPattern().on_plane(1100.0), seed=1)
+    cap = render_capture(rig, ideal_lattice().on_plane(1100.0), seed=1)
     calib_path = tmp / "calib.yaml"
     calibrate_from_capture(cap, 1100.0, rig.baseline_mm).save(calib_path)
     cu = TimedUnit(MotorPlant())
