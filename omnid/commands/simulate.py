@@ -71,6 +71,20 @@ def add_run_arguments(
     p.add_argument("--seed", type=int, default=0, help="random seed (0)")
     p.add_argument("--out", default=default_out, help=f"report directory ({default_out})")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record the run as MCAP: what the daemon saw and decided, and the simulator's "
+        "truth on /sim/* (needs the 'record' extra)",
+    )
+    p.add_argument(
+        "--view",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="HOST:PORT",
+        help="serve the same topics live over the Foxglove WebSocket protocol (default "
+        "127.0.0.1:8765), the run paced to real time",
+    )
 
 
 def parse_drive(items: list[str]) -> list[tuple[float, float, float]]:

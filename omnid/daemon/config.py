@@ -23,6 +23,7 @@ from omnid.devices.control_unit import ControlUnitSettings
 from omnid.devices.joystick import JoystickSettings as JoystickDeviceSettings
 from omnid.devices.teleop import TeleopSettings
 from omnid.devices.tilt import TiltSettings as TiltSensorSettings
+from omnid.record.settings import RecordSettings
 from omnid.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -112,6 +113,7 @@ class OmnidConfig:
         default_factory=JoystickDeviceSettings
     )  # the joystick link (used when rider.joystick.enabled)
     service: ServiceSettings = field(default_factory=ServiceSettings)
+    record: RecordSettings = field(default_factory=RecordSettings)  # MCAP recording, live view
 
 
 def load_config(path: str | Path) -> OmnidConfig:

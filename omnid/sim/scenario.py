@@ -87,11 +87,24 @@ def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int
             flush=True,
         )
 
+    recording = None
+    if getattr(args, "record", None) or getattr(args, "view", None):
+        from omnid.record.session import SimRecording
+
+        recording = SimRecording(controller, args.record, args.view, pace=bool(args.view))
+        controller = recording.core
     settings = SimSettings(perception=args.perception, seed=args.seed)
     sim = Simulator(course, controller, settings=settings, rider=rider, progress=progress)
+    if recording is not None:
+        recording.attach(sim)
     if not args.quiet:
         print(f"{title}: {args.duration_s:.0f} s in course '{course.name}'", flush=True)
-    result = sim.run(args.duration_s)
+    try:
+        result = sim.run(args.duration_s)
+    finally:
+        if recording is not None:
+            for segment in recording.close():
+                print(f"recording: {segment}", flush=True)
     path = write_report(
         args.out, course, result, title, notes, sim.chair.settings, story=rider is not None
     )

@@ -1,0 +1,69 @@
+"""``RecordSettings``: the ``record`` section of ``etc/omnid.yaml`` (no heavy imports here)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from omnid.config import require
+
+
+@dataclass(frozen=True)
+class RecordSettings:
+    """Where and how much the daemon records (MCAP, docs/recording.md), and the live view.
+
+    path              first segment's file; ``strftime`` codes (``%Y%m%d-%H%M%S``) are expanded
+                      at each segment's start, so restarts never overwrite a ride; "" = off
+    max_file_mb       a new segment starts past this size (0: no size limit)
+    max_file_s        ... or past this age (0: no age limit)
+    max_total_mb      the oldest segments of this path are deleted beyond this total (0: keep)
+    capture_period_s  at most one camera capture (4 lossless PNGs) this often (0: none)
+    map_period_s      the free-space map at most this often (0: never)
+    queue_messages    the control loop hands records over through a queue this long; when the
+                      writer falls behind, new records are dropped and counted, never waited for
+    compression       MCAP chunk compression
+    view              ``HOST:PORT`` of the live Foxglove WebSocket view ("" = off)
+    """
+
+    path: str = ""
+    max_file_mb: float = 256.0
+    max_file_s: float = 600.0
+    max_total_mb: float = 2048.0
+    capture_period_s: float = 10.0
+    map_period_s: float = 1.0
+    queue_messages: int = 4000
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    view: str = ""
+
+    def __post_init__(self) -> None:
+        require(0 <= self.max_file_mb <= 1e6, "max_file_mb", "must be in [0, 1e6]")
+        require(0 <= self.max_file_s <= 1e6, "max_file_s", "must be in [0, 1e6]")
+        require(0 <= self.max_total_mb <= 1e7, "max_total_mb", "must be in [0, 1e7]")
+        require(
+            self.max_total_mb == 0
+            or self.max_file_mb == 0
+            or self.max_total_mb >= 2 * self.max_file_mb,
+            "max_total_mb",
+            "must be at least twice max_file_mb (the open segment and one closed), or 0",
+        )
+        require(0 <= self.capture_period_s <= 3600, "capture_period_s", "must be in [0, 3600]")
+        require(0 <= self.map_period_s <= 3600, "map_period_s", "must be in [0, 3600]")
+        require(10 <= self.queue_messages <= 1_000_000, "queue_messages", "must be in [10, 1e6]")
+        if self.view:
+            host, _, port = self.view.rpartition(":")
+            require(
+                bool(host) and port.isdigit() and 0 < int(port) < 65536,
+                "view",
+                f"expected HOST:PORT (e.g. 127.0.0.1:8765), got {self.view!r}",
+            )
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.path)
+
+    @property
+    def view_address(self) -> tuple[str, int] | None:
+        if not self.view:
+            return None
+        host, _, port = self.view.rpartition(":")
+        return host, int(port)
