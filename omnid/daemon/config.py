@@ -23,8 +23,8 @@ from omnid.devices.control_unit import ControlUnitSettings
 from omnid.devices.joystick import JoystickSettings as JoystickDeviceSettings
 from omnid.devices.teleop import TeleopSettings
 from omnid.devices.tilt import TiltSettings as TiltSensorSettings
-from omnid.record.settings import RecordSettings
 from omnid.errors import ConfigError
+from omnid.record.settings import RecordSettings
 
 log = logging.getLogger(__name__)
 

@@ -112,6 +112,13 @@ class Daemon:
         self.calibration = (
             load_calibration(holder.config) if holder.config.perception.enabled else None
         )
+        self.recording: Any = None  # omnid.record.session.DaemonRecording (record.path/view)
+        rec = holder.config.record
+        if rec.enabled or rec.view:
+            from omnid.record.session import DaemonRecording
+
+            self.recording = DaemonRecording(holder.config, self.calibration)
+            self.core = self.recording.wrap(self.core)
         self.tilt: Any = None
         self.joystick: Any = None
         self.worker: Any = None
@@ -196,6 +203,8 @@ class Daemon:
         healthy = self.link.status is not None
         if healthy != self._link_was_ok:
             self._link_was_ok = healthy
+            if self.recording is not None:
+                self.core.on_fault("control_unit_link", "back" if healthy else "lost", now)
             if healthy:
                 log.warning("control unit link back")
             else:
@@ -322,6 +331,8 @@ class Daemon:
 
     def _perception_error(self, what: str, exc: BaseException) -> None:
         self.stats.perception_errors += 1
+        if self.recording is not None:
+            self.core.on_fault(f"perception_{what}", str(exc))
         n = self.stats.perception_errors
         if n == 1 or n % 20 == 0:
             log.warning(
@@ -355,6 +366,8 @@ class Daemon:
                 if camera is None:
                     camera = open_camera(cfg.camera)
                 cap = await self.capture(camera)
+                if self.recording is not None:
+                    self.core.on_capture(cap)  # rate-limited, encoded off the loop
                 w0 = time.monotonic()
                 cloud = await self.worker.perceive(cap)
                 t_done = time.monotonic()
@@ -406,7 +419,7 @@ class Daemon:
             # keep the neutral pose measured at start across a reload
             new.mux.tilt.calibrating = False
             new.mux.tilt.set_neutral(old.mux.tilt.roll_offset_deg, old.mux.tilt.pitch_offset_deg)
-        self.core = new
+        self.core = self.recording.wrap(new) if self.recording is not None else new
         self.notifier.send("READY=1\nSTATUS=reloaded")
         log.info("configuration reloaded (device and perception settings apply at the next start)")
         return True
@@ -430,6 +443,8 @@ class Daemon:
 
         gc.collect()
         gc.freeze()  # start-up objects leave the collector's scans: shorter GC pauses in the loop
+        if self.recording is not None:
+            self.recording.start()  # a file that cannot be written is logged, never fatal
         await self.link.start()
         try:
             await self._start_inputs()
@@ -472,12 +487,27 @@ class Daemon:
                 await asyncio.wait_for(close(), timeout=3.0)
         await self.link.stop()
         log.info("omnid stopped; wheels at zero")
+        if self.recording is not None:
+            self.recording.close()
 
 
-def main(config_path: str, stats_out: str | None = None) -> int:
+def main(
+    config_path: str,
+    stats_out: str | None = None,
+    record: str | None = None,
+    view: str | None = None,
+) -> int:
     """Load the configuration and calibration (errors name file and key) and run until
-    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit."""
+    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit; ``record`` /
+    ``view``: the command line's ``--record FILE`` / ``--view HOST:PORT`` (over ``record.*``)."""
     holder = ConfigHolder(config_path)
+    if record or view:
+        import dataclasses
+
+        from omnid.record.session import with_overrides
+
+        cfg = holder.config
+        holder.config = dataclasses.replace(cfg, record=with_overrides(cfg.record, record, view))
     daemon_ref: list[Daemon] = []
 
     async def amain() -> int:
