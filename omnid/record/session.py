@@ -99,7 +99,12 @@ class SimRecording:
     the live view of it paced to real time."""
 
     def __init__(
-        self, controller: Any, record_path: str | None, view: str | None, pace: bool = False
+        self,
+        controller: Any,
+        record_path: str | None,
+        view: str | None,
+        pace: bool = False,
+        capture_period_s: float = 2.0,
     ) -> None:
         require_recording_libraries()
         if not hasattr(controller, "last_report"):
@@ -109,7 +114,7 @@ class SimRecording:
         settings = RecordSettings(
             path=record_path or "",
             view=view or "",
-            capture_period_s=2.0,
+            capture_period_s=capture_period_s,
             max_file_mb=0.0,
             max_file_s=0.0,
             max_total_mb=0.0,
