@@ -62,7 +62,7 @@ def main() -> None:
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    logging.disable(logging.WARNING)
+    logging.getLogger().addHandler(logging.NullHandler())  # warnings go to /log, not stderr
     record(out, "demo_truth.mcap", 14.0, "truth", 0.0)
     record(
         out,

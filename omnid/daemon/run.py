@@ -204,7 +204,7 @@ class Daemon:
         if healthy != self._link_was_ok:
             self._link_was_ok = healthy
             if self.recording is not None:
-                self.core.on_fault("control_unit_link", "back" if healthy else "lost", now)
+                self.recording.on_fault("control_unit_link", "back" if healthy else "lost", now)
             if healthy:
                 log.warning("control unit link back")
             else:
@@ -332,7 +332,7 @@ class Daemon:
     def _perception_error(self, what: str, exc: BaseException) -> None:
         self.stats.perception_errors += 1
         if self.recording is not None:
-            self.core.on_fault(f"perception_{what}", str(exc))
+            self.recording.on_fault(f"perception_{what}", str(exc))
         n = self.stats.perception_errors
         if n == 1 or n % 20 == 0:
             log.warning(
@@ -367,7 +367,7 @@ class Daemon:
                     camera = open_camera(cfg.camera)
                 cap = await self.capture(camera)
                 if self.recording is not None:
-                    self.core.on_capture(cap)  # rate-limited, encoded off the loop
+                    self.recording.on_capture(cap)  # rate-limited, encoded off the loop
                 w0 = time.monotonic()
                 cloud = await self.worker.perceive(cap)
                 t_done = time.monotonic()

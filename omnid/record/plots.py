@@ -360,8 +360,8 @@ def topdown(rec: Recording, size_px: int = 900) -> NDArray[np.uint8]:
     everything = [odo, pts[:, :2]]
     if len(s.truth):
         everything.append(s.truth[:, :2])
-    for r in boxes + drops:
-        everything.append(np.array([[r[0], r[2]], [r[1], r[3]]]))
+    for rect in boxes + drops:
+        everything.append(np.array([[rect[0], rect[2]], [rect[1], rect[3]]]))
     allxy = np.vstack([e for e in everything if len(e)] or [np.zeros((1, 2))])
     lo = allxy.min(axis=0) - 800.0
     hi = allxy.max(axis=0) + 800.0
@@ -382,11 +382,11 @@ def topdown(rec: Recording, size_px: int = 900) -> NDArray[np.uint8]:
     for gy in np.arange(math.floor(lo[1] / g) * g, hi[1] + 1, g):
         a, b = px(np.array([[lo[0], gy], [hi[0], gy]]))
         cv2.line(img, tuple(a), tuple(b), GRID, 1)
-    for r in drops:
-        a, b = px(np.array([[r[1], r[3]], [r[0], r[2]]]))
+    for rect in drops:
+        a, b = px(np.array([[rect[1], rect[3]], [rect[0], rect[2]]]))
         cv2.rectangle(img, tuple(a), tuple(b), (170, 215, 255), -1)
-    for r in boxes:
-        a, b = px(np.array([[r[1], r[3]], [r[0], r[2]]]))
+    for rect in boxes:
+        a, b = px(np.array([[rect[1], rect[3]], [rect[0], rect[2]]]))
         cv2.rectangle(img, tuple(a), tuple(b), (185, 185, 185), -1)
     for x, y_, c in pts:
         q = px(np.array([[x, y_]]))[0]
@@ -446,7 +446,8 @@ def _world_rects(rec: Recording) -> tuple[list[tuple[float, ...]], list[tuple[fl
     msgs = rec.topic(tp.SIM_WORLD)
     if not msgs:
         return [], []
-    boxes, drops = [], []
+    boxes: list[tuple[float, ...]] = []
+    drops: list[tuple[float, ...]] = []
     for e in msgs[0].doc.entities:
         for c in e.cubes:
             p, sz = c.pose.position, c.size

@@ -74,11 +74,11 @@ class Recording:
 
 def read_recording(paths: Iterable[str | Path], topics: set[str] | None = None) -> Recording:
     """Read the segments ``paths`` (in the order given) — every message, or only ``topics``."""
-    paths = [Path(p) for p in paths]
-    if not paths:
+    files = [Path(p) for p in paths]
+    if not files:
         raise InputError("no recording given")
     rec: Recording | None = None
-    for path in paths:
+    for path in files:
         seg = _read_one(path, topics)
         if rec is None:
             rec = seg
@@ -86,7 +86,7 @@ def read_recording(paths: Iterable[str | Path], topics: set[str] | None = None) 
             ours, theirs = rec.metadata, seg.metadata
             for key in ("omnid_version", "source", "config"):
                 if ours.get(key) != theirs.get(key):
-                    raise InputError(f"{path}: not a segment of the same recording as {paths[0]}")
+                    raise InputError(f"{path}: not a segment of the same recording as {files[0]}")
             rec.paths.append(path)
             rec.messages.extend(seg.messages)
             rec.truncated = rec.truncated or seg.truncated

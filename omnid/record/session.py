@@ -81,9 +81,18 @@ class DaemonRecording:
         )
         self.height_mm = float(calibration.floor_depth_mm) if calibration is not None else 1100.0
         self.handler = RecorderLogHandler(self.recorder)
+        self.tap: Any = None
 
     def wrap(self, core: Any) -> RecordingCore:
-        return RecordingCore(core, self.recorder, rig_height_mm=self.height_mm)
+        """``core`` recorded (at start, and again for the new core of a reload)."""
+        self.tap = RecordingCore(core, self.recorder, rig_height_mm=self.height_mm)
+        return self.tap
+
+    def on_capture(self, capture: Any) -> None:
+        self.tap.on_capture(capture)
+
+    def on_fault(self, name: str, detail: str, now_s: float | None = None) -> None:
+        self.tap.on_fault(name, detail, now_s)
 
     def start(self) -> None:
         self.recorder.start()
