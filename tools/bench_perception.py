@@ -28,7 +28,7 @@ from omnid.core.laser import DotPattern
 from omnid.core.matching import fit_thesis_polynomials, match_dots
 from omnid.core.triangulate import triangulate
 from omnid.core.types import PointCloud
-from omnid.experiments.scenes import misaligned_rig
+from omnid.sim.rigs import misaligned_rig
 
 
 def timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:

@@ -24,7 +24,7 @@ from omnid.core.matching import match_dots
 from omnid.core.triangulate import triangulate
 from omnid.sim.course import walls
 from omnid.sim.render import RenderOptions, render_camera_pair, render_capture
-from omnid.sim.simulator import misaligned_rig
+from omnid.sim.rigs import misaligned_rig
 from omnid.sim.world import Box, RigMount, World, cast_laser
 
 H = 1100.0

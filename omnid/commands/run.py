@@ -19,7 +19,10 @@ def register(subparsers: Any) -> None:
         "the repository's etc/omnid.yaml)",
     )
     parser.add_argument(
-        "--check", action="store_true", help="only validate the configuration and exit"
+        "--check",
+        action="store_true",
+        help="check everything `run` checks before it starts (configuration, calibration, "
+        "ports, camera, teleop socket), list each finding and exit: 0 if `run` would start",
     )
     parser.add_argument(
         "--stats-out",
@@ -45,11 +48,20 @@ def register(subparsers: Any) -> None:
 
 def handle(args: argparse.Namespace) -> int:
     from omnid.daemon.config import load_config
+    from omnid.daemon.preflight import preflight
 
     if args.check:
-        load_config(args.config)
-        print(f"{args.config}: ok")
-        return 0
+        config = load_config(args.config)
+        result = preflight(config, args.config)
+        for check in result.checks:
+            print(check.line())
+        n_err, n_warn = len(result.errors), len(result.warnings)
+        verdict = "refused" if n_err else "ok"
+        print(
+            f"{args.config}: {verdict} ({len(result.checks)} checks, {n_err} errors, "
+            f"{n_warn} warnings)"
+        )
+        return 2 if n_err else 0
     from omnid.daemon.run import main
 
     return main(args.config, stats_out=args.stats_out, record=args.record, view=args.view)

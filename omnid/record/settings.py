@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 
 
 @dataclass(frozen=True)
-class RecordSettings:
+class RecordSettings(Settings):
     """Where and how much the daemon records (MCAP, docs/recording.md), and the live view.
 
     path              first segment's file; ``strftime`` codes (``%Y%m%d-%H%M%S``) are expanded
@@ -26,19 +26,17 @@ class RecordSettings:
     """
 
     path: str = ""
-    max_file_mb: float = 256.0
-    max_file_s: float = 600.0
-    max_total_mb: float = 2048.0
-    capture_period_s: float = 10.0
-    map_period_s: float = 1.0
-    queue_messages: int = 4000
+    max_file_mb: float = setting(256.0, 0.0, 1e6)
+    max_file_s: float = setting(600.0, 0.0, 1e6)
+    max_total_mb: float = setting(2048.0, 0.0, 1e7)
+    capture_period_s: float = setting(10.0, 0.0, 3600.0)
+    map_period_s: float = setting(1.0, 0.0, 3600.0)
+    queue_messages: int = setting(4000, 10, 1_000_000)
     compression: Literal["zstd", "lz4", "none"] = "zstd"
     view: str = ""
 
     def __post_init__(self) -> None:
-        require(0 <= self.max_file_mb <= 1e6, "max_file_mb", "must be in [0, 1e6]")
-        require(0 <= self.max_file_s <= 1e6, "max_file_s", "must be in [0, 1e6]")
-        require(0 <= self.max_total_mb <= 1e7, "max_total_mb", "must be in [0, 1e7]")
+        super().__post_init__()
         require(
             self.max_total_mb == 0
             or self.max_file_mb == 0
@@ -46,9 +44,6 @@ class RecordSettings:
             "max_total_mb",
             "must be at least twice max_file_mb (the open segment and one closed), or 0",
         )
-        require(0 <= self.capture_period_s <= 3600, "capture_period_s", "must be in [0, 3600]")
-        require(0 <= self.map_period_s <= 3600, "map_period_s", "must be in [0, 3600]")
-        require(10 <= self.queue_messages <= 1_000_000, "queue_messages", "must be in [10, 1e6]")
         if self.view:
             host, _, port = self.view.rpartition(":")
             require(

@@ -17,8 +17,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 log = logging.getLogger(__name__)
 
 
@@ -51,13 +49,9 @@ class RealTimeChair:
         self.t0 = time.monotonic()
         self.contacts: list[tuple[float, str]] = []
         self.closest_mm = math.inf
-        w = self.course.world
-        self._boxes = np.array(
-            [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in w.boxes]
-        ).reshape(-1, 4)
-        self._drops = np.array(
-            [(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in w.dropoffs]
-        ).reshape(-1, 4)
+        from omnid.sim.results import world_rects
+
+        self._boxes, self._drops = world_rects(self.course.world)
         self.cu_path = ""
         self.tilt_path = ""
 
@@ -84,16 +78,11 @@ class RealTimeChair:
 
     def poll(self) -> list[str]:
         """Advance the plant to now; new contacts (described) since the last poll."""
-        from omnid.sim.simulator import _clearance, _perimeter
+        from omnid.sim.results import chair_clearance_mm
 
         _ = self.emu.clocks
         chair = self.sim.chair
-        supports = np.array(list(chair.support_points().values()))
-        self.closest_mm = min(
-            self.closest_mm,
-            _clearance(_perimeter(chair), self._boxes),
-            _clearance(supports, self._drops),
-        )
+        self.closest_mm = min(self.closest_mm, chair_clearance_mm(chair, self._boxes, self._drops))
         out = []
         for c in chair.contacts(self.course.world):
             text = f"{c.kind} ({c.part})"

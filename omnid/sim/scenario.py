@@ -26,16 +26,25 @@ log = logging.getLogger(__name__)
 def make_core(
     rig_x_offset_mm: float = 300.0, joystick: bool = False, tilt: bool | None = None
 ) -> Any:
-    """The daemon's ``ControlCore`` with its default configuration (``etc/omnid.yaml``
-    defaults), told where the simulated rig sits on the chair. ``joystick``: the rider has a
-    joystick (``rider.joystick.enabled``); ``tilt``: and the head-tilt sensor (default: only
-    when there is no joystick — a silent enabled source would stop the chair)."""
+    """The daemon's ``ControlCore`` with the shipped configuration (``etc/omnid.yaml`` = the
+    built-in defaults) except for what a scripted rider cannot do: hold the head still for the
+    neutral-pose calibration at start (``rider.tilt.neutral_calibration_s: 0``: the scripted
+    head's neutral is level) and release a command after a fault (``control.rearm_after_fault:
+    false``: the scripts hold their command through faults). Told where the simulated rig sits
+    on the chair. ``joystick``: the rider has a joystick (``rider.joystick.enabled``); ``tilt``:
+    and the head-tilt sensor (default: only when there is no joystick — a silent enabled source
+    would stop the chair)."""
     from omnid.daemon.config import OmnidConfig
     from omnid.daemon.core import ControlCore
 
     config = OmnidConfig()
     config = dataclasses.replace(
         config,
+        control=dataclasses.replace(config.control, rearm_after_fault=False),
+        rider=dataclasses.replace(
+            config.rider,
+            tilt=dataclasses.replace(config.rider.tilt, neutral_calibration_s=0.0),
+        ),
         perception=dataclasses.replace(config.perception, rig_x_offset_mm=rig_x_offset_mm),
     )
     if tilt is None:
