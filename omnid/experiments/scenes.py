@@ -18,73 +18,50 @@ Used by ``tools/eval_scenes.py``, ``omnid experiment table74`` and ``omnid scene
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from omnid.core.calibration import Calibration, calibrate_from_capture
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
-from omnid.sim.render import RenderOptions, render_camera_pair
-from omnid.sim.scenes import Scene, get_scene
+from omnid.sim.laser import LaserProjector, ideal_lattice
+from omnid.sim.render import RenderOptions, render_hits
+from omnid.sim.rigs import misaligned_rig
+from omnid.sim.scenes import Scene, floor_hits, get_scene
 from omnid.sim.world import LaserHits, cast_laser
 
 METHODS: tuple[str, ...] = ("best", "thesis")
 
 
-def misaligned_rig(floor_depth_mm: float = 1100.0) -> StereoRig:
-    """Centres a few px off, f/K +3 % / −2 %, rotations +1.5° / −1° (as the tests use)."""
-    nom = StereoRig.nominal(floor_depth_mm=floor_depth_mm)
-    c1 = replace(
-        nom.cam1,
-        center_row_px=nom.cam1.center_row_px + 3.0,
-        center_col_px=nom.cam1.center_col_px - 2.0,
-        f_over_k_px=nom.cam1.f_over_k_px * 1.03,
-        rotation_rad=math.radians(1.5),
-    )
-    c2 = replace(
-        nom.cam2,
-        center_row_px=nom.cam2.center_row_px - 2.0,
-        center_col_px=nom.cam2.center_col_px + 4.0,
-        f_over_k_px=nom.cam2.f_over_k_px * 0.98,
-        rotation_rad=math.radians(-1.0),
-    )
-    return StereoRig(c1, c2, floor_depth_mm)
+def scene_hits(scene: Scene, rig: StereoRig, laser: LaserProjector | None = None) -> LaserHits:
+    """Where the dots of ``laser`` (default: :func:`ideal_lattice`) fall in ``scene``, and which
+    mirror sees each."""
+    return cast_laser(scene.world, scene.pose, scene.mount, laser or ideal_lattice(), rig)
 
 
-def scene_hits(scene: Scene, rig: StereoRig) -> LaserHits:
-    """Where the laser dots of ``scene`` fall, and which mirror sees each."""
-    return cast_laser(scene.world, scene.pose, scene.mount, DotPattern(), rig)
-
-
-def render_hits(
-    rig: StereoRig, hits: LaserHits, seed: int, options: RenderOptions | None = None
+def floor_capture(
+    rig: StereoRig,
+    seed: int,
+    options: RenderOptions | None = None,
+    laser: LaserProjector | None = None,
 ) -> StereoCapture:
-    """Mask/base capture in which each camera shows only the dots it can see."""
-    rng = np.random.default_rng(seed)
-    opts = options or RenderOptions()
-    m1, b1 = render_camera_pair(rig.cam1, rig.cam1.project(hits.xyz[hits.visible1]), opts, rng)
-    m2, b2 = render_camera_pair(rig.cam2, rig.cam2.project(hits.xyz[hits.visible2]), opts, rng)
-    return StereoCapture(m1, b1, m2, b2)
-
-
-def floor_capture(rig: StereoRig, seed: int, options: RenderOptions | None = None) -> StereoCapture:
     """The empty floor at the rig's floor depth, as ``omnid calibrate`` wants it."""
-    from omnid.sim.scenes import floor
-    from omnid.sim.world import RigMount
-
-    scene = floor(RigMount(height_mm=rig.floor_depth_mm))
-    return render_hits(rig, scene_hits(scene, rig), seed, options)
+    return render_hits(rig, floor_hits(rig, laser or ideal_lattice()), seed, options)
 
 
-def calibrate_on_floor(rig: StereoRig, seed: int) -> Calibration:
+def calibrate_on_floor(
+    rig: StereoRig,
+    seed: int,
+    laser: LaserProjector | None = None,
+    options: RenderOptions | None = None,
+) -> Calibration:
     """Calibration from a rendered capture of the empty floor (no other knowledge of ``rig``)."""
-    return calibrate_from_capture(floor_capture(rig, seed), rig.floor_depth_mm, rig.baseline_mm)
+    cap = floor_capture(rig, seed, options, laser)
+    return calibrate_from_capture(cap, rig.floor_depth_mm, rig.baseline_mm)
 
 
 def assign_truth(
@@ -137,13 +114,22 @@ class SceneRun:
     truth_index: NDArray[np.intp]
 
 
-def evaluate(scene: Scene, rig: StereoRig, calib: Calibration, method: str, seed: int) -> SceneRun:
-    """Render ``scene`` on ``rig``, perceive it with ``method`` (its own detector) and score it."""
+def evaluate(
+    scene: Scene,
+    rig: StereoRig,
+    calib: Calibration,
+    method: str,
+    seed: int,
+    laser: LaserProjector | None = None,
+    options: RenderOptions | None = None,
+) -> SceneRun:
+    """Render ``scene`` on ``rig`` with ``laser`` (default :func:`ideal_lattice`) and
+    ``options``, perceive it with ``method`` (its own detector) and score it."""
     from omnid.core.classify import ClassifySettings
     from omnid.core.pipeline import PerceptionSettings, perceive
 
-    hits = scene_hits(scene, rig)
-    cap = render_hits(rig, hits, seed)
+    hits = scene_hits(scene, rig, laser)
+    cap = render_hits(rig, hits, seed, options)
     t0 = time.perf_counter()
     settings = PerceptionSettings(detection_method=None)  # each method with its own detector
     cloud = perceive(cap, calib, method, settings)  # type: ignore[arg-type]

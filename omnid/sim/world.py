@@ -7,8 +7,9 @@ world. The vision rig sits ``RigMount.x_offset_mm`` ahead of the axle midpoint w
 the baseline, Z down from the mirror plane), so a rig point (X, Y, Z) is the robot-frame point
 (X + x_offset, −Y) at height h = H − Z (the inverse of ``occupancy.rig_to_robot``).
 
-:func:`cast_laser` follows each ray of the :class:`~omnid.core.laser.DotPattern` from the rig
-origin (the laser sits midway between the mirrors, thesis 6.3.1.3) to the first surface it meets —
+:func:`cast_laser` follows each beam of a :class:`~omnid.sim.laser.LaserProjector` from the laser's
+source (near the baseline's midpoint, but not in the mirror plane: SPEC §2) to the first surface it
+meets —
 the floor, the lowered floor of a :class:`DropOff` (or the pit's far wall), a box top or a box side
 — and then asks, for each mirror, whether the dot is inside that mirror's disk and whether the line
 from the dot to the mirror is blocked by a box or by the ground at a drop-off edge. Everything is
@@ -17,7 +18,6 @@ vectorised over rays (slab tests against all boxes at once).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -27,9 +27,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from omnid.config import require
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.triangulate import TriangulationMethod
 from omnid.core.types import PointClass, PointCloud
+from omnid.sim.laser import LaserProjector, LaserRays
 
 #: Boxes reach this far below the floor so that a box standing in a pit rests on its bottom
 #: (the floor itself stops every ray and sight line long before it matters elsewhere), mm.
@@ -150,7 +150,7 @@ class RigMount:
 
 @dataclass(frozen=True)
 class LaserHits:
-    """Where the laser dots fall, one row per ray of the pattern (row-major like its slopes).
+    """Where the laser dots fall, one row per beam of the laser (in its beam order).
 
     xyz         (N, 3) dot positions in the rig frame (SPEC §2), mm
     visible1    (N,) inside mirror 1's disk and not occluded between the dot and mirror 1
@@ -158,6 +158,9 @@ class LaserHits:
     truth       (N,) :class:`PointClass` codes (uint8): floor, obstacle (a box), drop-off (lowered
                 floor or a pit wall)
     pixels      (N, 4) ideal image positions r1, c1, r2, c2 of the dots, px (NaN where none)
+    brightness  (N,) relative power of each beam (the grating's order envelope), 1 on its axis
+    normal      (N, 3) unit normal of the surface each dot lies on, rig frame, pointing to the
+                side the beam came from (up, (0, 0, −1), on the floor and box tops)
     """
 
     xyz: NDArray[np.float64]
@@ -165,6 +168,15 @@ class LaserHits:
     visible2: NDArray[np.bool_]
     truth: NDArray[np.uint8]
     pixels: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
+    brightness: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    normal: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def __post_init__(self) -> None:
+        n = len(self.xyz)
+        if len(self.brightness) != n:
+            object.__setattr__(self, "brightness", np.ones(n))
+        if len(self.normal) != n:
+            object.__setattr__(self, "normal", np.tile([0.0, 0.0, -1.0], (n, 1)))
 
     @property
     def visible(self) -> NDArray[np.bool_]:
@@ -243,40 +255,41 @@ def _blocked(
     return np.any(hi - lo > _GRAZE, axis=0)
 
 
-@functools.lru_cache(maxsize=8)
-def _pattern_directions(pattern: DotPattern) -> NDArray[np.float64]:
-    """``pattern.directions()``, computed once per pattern (read-only): the simulator casts the
-    same pattern every perception cycle."""
-    d = pattern.directions()
-    d.setflags(write=False)
-    return d
+Laser = LaserProjector | LaserRays
+
+
+def laser_rays(laser: Laser) -> LaserRays:
+    """The beams of a laser description: a projector or its rays."""
+    return laser if isinstance(laser, LaserRays) else laser.rays()
 
 
 def cast_laser(
     world: World,
     pose: ArrayLike,
     mount: RigMount,
-    pattern: DotPattern,
+    laser: Laser,
     rig: StereoRig,
 ) -> LaserHits:
-    """Cast every ray of ``pattern`` into ``world`` with the chair at ``pose``.
+    """Cast every beam of ``laser`` into ``world`` with the chair at ``pose``.
 
-    Each ray starts at the rig origin and stops at the first of: the floor (h = 0), the lowered
-    floor or the far wall of a drop-off pit, a box top or a box side. A dot is visible in mirror i
-    (at rig (0, Y_i, 0)) when its image lies inside that mirror's disk and the segment from the dot
-    to the mirror passes through no box and does not go below the floor (a drop-off's near edge
-    hides the pit bottom right behind it).
+    Each beam starts at the laser's source and stops at the first of: the floor (h = 0), the
+    lowered floor or the far wall of a drop-off pit, a box top or a box side. A dot is visible in
+    mirror i (at rig (0, Y_i, 0)) when its image lies inside that mirror's disk and the segment
+    from the dot to the mirror passes through no box and does not go below the floor (a drop-off's
+    near edge hides the pit bottom right behind it).
     """
     px, py, th = _pose(pose)
-    H = mount.height_mm
-    d_rig = _pattern_directions(pattern)
+    rays = laser_rays(laser)
+    d_rig = rays.directions
     n = len(d_rig)
-    origin_w = rig_to_world(np.zeros((1, 3)), (px, py, th), mount)[0]
+    origin_w = rig_to_world(rays.origin_mm[None, :], (px, py, th), mount)[0]
+    if not origin_w[2] > 0:
+        raise ValueError("cast_laser: the laser's source must be above the floor")
     o = np.broadcast_to(origin_w, (n, 3)).copy()
     d = _directions_to_world(d_rig, th)
 
     # Floor at h = 0 (every ray points down, so every ray meets it).
-    t_floor = H / d[:, 2] * -1.0  # d[:, 2] < 0 (h decreases along the ray)
+    t_floor = origin_w[2] / -d[:, 2]  # d[:, 2] < 0 (h decreases along the ray)
     t = t_floor.copy()
     truth = np.full(n, PointClass.FLOOR, dtype=np.uint8)
 
@@ -285,7 +298,7 @@ def cast_laser(
     pits = world._pit_array()
     if len(pits):
         tn, tf = _slab(o, d, pits)
-        enters = (tn <= tf) & (np.abs(tn - t_floor) <= 1e-6 * H)  # (P, N)
+        enters = (tn <= tf) & (np.abs(tn - t_floor) <= 1e-6 * origin_w[2])  # (P, N)
         if np.any(enters):
             k = np.argmax(enters, axis=0)
             hit = enters.any(axis=0)
@@ -305,6 +318,8 @@ def cast_laser(
 
     hit_w = o + t[:, None] * d
     xyz = world_to_rig(hit_w, (px, py, th), mount)
+    normal_w = _face_normals(hit_w, d, truth, boxes, pits)
+    normal = _directions_to_rig(normal_w, th)
     pixels = rig.project(xyz)
 
     mirrors_rig = [np.array([[0.0, rig.cam1.y_mm, 0.0]]), np.array([[0.0, rig.cam2.y_mm, 0.0]])]
@@ -318,7 +333,53 @@ def cast_laser(
         seen &= ~_blocked(hit_w, end, boxes)
         seen &= ~_under_ground(hit_w, end, pits)
         vis.append(seen)
-    return LaserHits(xyz, vis[0], vis[1], truth, pixels)
+    return LaserHits(
+        xyz, vis[0], vis[1], truth, pixels, np.asarray(rays.brightness, np.float64), normal
+    )
+
+
+def _face_normals(
+    hit_w: NDArray[np.float64],
+    d: NDArray[np.float64],
+    truth: NDArray[np.uint8],
+    boxes: NDArray[np.float64],
+    pits: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """World-frame unit normals (N, 3) of the faces the rays ``d`` stopped on at ``hit_w``.
+
+    Every face is axis-aligned; the face is the box (or pit) face nearest the hit point, and
+    its normal points against the ray (out of a box, into a pit's open volume).
+    """
+    normal = np.zeros((len(hit_w), 3))
+    normal[:, 2] = 1.0  # the floor and every horizontal face the rays come down on
+    for code, solids in ((PointClass.OBSTACLE, boxes), (PointClass.DROPOFF, pits)):
+        idx = np.flatnonzero(truth == code)
+        if len(idx) == 0 or len(solids) == 0:
+            continue
+        q = hit_w[idx]
+        # Distance of each hit to each face of each solid (S, n, 6); the nearest face wins.
+        gaps = np.concatenate(
+            [np.abs(q[None] - solids[:, None, 0]), np.abs(q[None] - solids[:, None, 1])], axis=2
+        )
+        inside = np.all(
+            (q[None] >= solids[:, None, 0] - 1e-6) & (q[None] <= solids[:, None, 1] + 1e-6),
+            axis=2,
+        )
+        gaps = np.where(inside[:, :, None], gaps, np.inf).reshape(len(solids), len(idx), 6)
+        flat = gaps.transpose(1, 0, 2).reshape(len(idx), -1).argmin(axis=1)
+        axis = flat % 6 % 3
+        n_face = np.zeros((len(idx), 3))
+        n_face[np.arange(len(idx)), axis] = -np.sign(d[idx, axis])
+        normal[idx] = n_face
+    return normal
+
+
+def _directions_to_rig(d_world: NDArray[np.float64], theta_rad: float) -> NDArray[np.float64]:
+    """World-frame directions (x, y, h) → rig frame (X, Y, Z) for a chair heading
+    ``theta_rad`` (the inverse of :func:`_directions_to_world`)."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    dx, dy = d_world[:, 0], d_world[:, 1]
+    return np.column_stack([c * dx + s * dy, -(-s * dx + c * dy), -d_world[:, 2]])
 
 
 def _under_ground(
