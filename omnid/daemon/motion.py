@@ -151,21 +151,14 @@ class WheelPI:
         self.gain = gain
         self.settings = settings
         self.integral = 0.0
-        self._target = 0.0
 
     def reset(self) -> None:
         self.integral = 0.0
-        self._target = 0.0
 
     def step(self, target_mm_s: float, measured_mm_s: float, dt_s: float) -> float:
         s = self.settings
-        # A target that stops or changes direction starts a new integral: the ramp can pass
-        # through zero between two cycles, and a trim learned driving one way would hold the
-        # wheel back the other way (clamped to zero by the no-plugging rule below).
-        if target_mm_s == 0.0 or target_mm_s * self._target < 0.0:
-            self.integral = 0.0
-        self._target = target_mm_s
         if target_mm_s == 0.0:
+            self.integral = 0.0
             return 0.0
         ff = self.gain * target_mm_s / s.full_duty_speed_mm_s
         err = target_mm_s - measured_mm_s
