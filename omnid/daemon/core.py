@@ -340,6 +340,7 @@ class ControlCore:
         demand = self.mux.decide(now_s)
         if self.halt:
             demand = RiderDemand(stop=True, source="daemon", reason="shutdown_stale")
+        self.arming.observe(self.mux, now_s)
         # inputs that went stale during a stall are the stall's doing, not a fault of their own
         lost = self._inputs_lost(now_s)
         loop_stalled = gap > cfg.control_unit.max_command_age_s + 1e-6

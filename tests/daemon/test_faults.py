@@ -8,7 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from daemon_helpers import RecordingMap, Status, Tilt
+from daemon_helpers import RecordingMap, Status, Tilt, arm
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -48,7 +48,9 @@ def make_core(**safety) -> ControlCore:
     )
     m = RecordingMap(cfg.freespace.grid)
     m.states[:] = 1  # free everywhere
-    return ControlCore(cfg, world_map=m)
+    core = ControlCore(cfg, world_map=m)
+    arm(core)
+    return core
 
 
 class Run:
@@ -221,3 +223,26 @@ def test_rearm_follows_the_source_that_was_driving():
         held.append(moving(core.step(t)))
     assert not any(held)
     assert core.arming.driver == "keyboard"
+
+
+def test_a_head_tilted_when_the_daemon_starts_drives_only_after_a_rest():
+    """A restarted daemon (systemd restarts one whose loop died) with the rider's head still
+    tilted: nothing moves until the head has been seen at rest."""
+    d = OmnidConfig()
+    cfg = replace(
+        d,
+        rider=RiderSettings(
+            tilt=TiltSettings(dwell_s=0.1, neutral_calibration_s=0.0),
+            joystick=JoystickSettings(enabled=False),
+        ),
+    )
+    m = RecordingMap(cfg.freespace.grid)
+    m.states[:] = 1
+    r = Run(ControlCore(cfg, world_map=m))  # not armed: the first reading is already tilted
+    r.head = FORWARD
+    assert not any(moving(c) for c in r.cycles(1.5))
+    assert r.core.last_report.demand.reason == "rearm_wait"
+    r.head = NEUTRAL
+    r.cycles(0.1)
+    r.head = FORWARD
+    assert moving(r.cycles(0.6)[-1])
