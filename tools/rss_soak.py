@@ -127,6 +127,8 @@ def main() -> int:
         alive = b.proc.poll() is None
         rc = b.stop()
         frames = len(b.spy.frames)
+        log = b.log_text()
+        trips, refusals = b.cu.watchdog_trips, b.cu.stale_refusals
     warm = 60.0 * args.warm_up_min
     d_after = [s for s in daemon if s[0] >= warm]
     w_after = [s for s in worker if s[0] >= warm]
@@ -150,6 +152,19 @@ def main() -> int:
     if total:
         print(f"  daemon + worker: max {max(total):.1f} MB")
     print(f"  open file descriptors: {min(fds)} … {max(fds)}")
+    # faults the daemon declared, by kind (the injected tilt unplugs are 1 per 5 min)
+    kinds: dict[str, int] = {}
+    for line in log.splitlines():
+        if "omnid.daemon.arming: fault " in line:
+            kind = line.split("fault ", 1)[1].split(":", 1)[0]
+            kinds[kind] = kinds.get(kind, 0) + 1
+    stalls = log.count("control loop stalled")
+    injected = int(daemon[-1][0] // 300)
+    print(
+        f"  faults declared: {kinds or 'none'} ({injected} tilt unplugs injected); "
+        f"control-loop stalls > 2 command periods: {stalls}; unit watchdog trips {trips}, "
+        f"refused commands {refusals}"
+    )
     return 0
 
 

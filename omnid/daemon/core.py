@@ -372,7 +372,14 @@ class ControlCore:
             return self._zero(now_s, demand, code)
         if loop_stalled:
             self.arming.filter(demand, self.mux, now_s)  # a release is a release, even now
-            return self._zero(now_s, demand, Reason.FAULT)
+            ramp = self.motion.ramp
+            v, w = ramp.v_mm_s, ramp.omega_rad_s
+            cmd = self._zero(now_s, demand, Reason.FAULT)
+            if gap < cfg.control_unit.unit_watchdog_s:
+                # the unit kept the wheels going through the stall: resume from the ramp's
+                # speed (integrators reset), not from a standstill the chair never reached
+                ramp.v_mm_s, ramp.omega_rad_s = v, w
+            return cmd
         for name in lost:
             self.arming.on_fault(f"{name}_lost", now_s)
         if (
