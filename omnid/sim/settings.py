@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from omnid.config import require
+from omnid.sim.camera import CameraModel
 
 PerceptionMode = Literal["truth", "pipeline", "off"]
 
@@ -38,9 +39,13 @@ class SimSettings:
     rig: Literal["misaligned", "nominal"] = "misaligned"  # the cameras as installed
     tilt_link: Literal["emulator", "direct"] = "emulator"  # head script through the GS311 codec
     tilt_noise_deg: float = 0.0  # Gaussian noise of the emulated sensor (head jitter)
-    frame_interval_s: float = 1.0 / 30.0  # camera frame period: a flushed read waits this long
+    # the cameras' timing and scene; None: the controller's camera.fps, exposures 80 % of its
+    # camera.exposure_s (the longest the capture cycle plans for)
+    camera: CameraModel | None = None
+    laser_delay_s: float = 0.02  # the control unit's relay: request → light switched, s
+    laser_jitter_s: float = 0.0  # ... plus a uniform 0 … this, per switch
     laser_timeout_s: float | None = None  # None: the controller's perception.laser_timeout_s
-    frame_timeout_s: float = 1.0  # the camera source gives up on a frame after this long
+    frame_timeout_s: float = 1.0  # without a controller config: the cycle's frame timeout
     record_seen: bool = True  # keep every non-floor point perception reported (off for soaks)
     story_rest_s: float = 1.0  # a reactive rider's run ends this long after its story ended
 
@@ -60,8 +65,9 @@ class SimSettings:
         require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
         require(self.tilt_noise_deg >= 0, "tilt_noise_deg", "must be ≥ 0")
         require(self.story_rest_s >= 0, "story_rest_s", "must be ≥ 0")
-        for name in ("frame_interval_s", "frame_timeout_s"):
-            require(getattr(self, name) > 0, name, "must be positive")
+        require(self.frame_timeout_s > 0, "frame_timeout_s", "must be positive")
+        require(self.laser_delay_s >= 0, "laser_delay_s", "must be ≥ 0")
+        require(self.laser_jitter_s >= 0, "laser_jitter_s", "must be ≥ 0")
 
     def for_controller(self, controller: Any) -> SimSettings:
         """These settings with unset values taken from the controller's configuration (the
@@ -77,8 +83,19 @@ class SimSettings:
         laser = self.laser_timeout_s
         if laser is None:
             laser = float(cfg.perception.laser_timeout_s) if cfg is not None else 0.5
+        camera = self.camera
+        if camera is None:
+            camera = (
+                CameraModel(fps=float(cfg.camera.fps), exposure_s=0.8 * cfg.camera.exposure_s)
+                if cfg is not None
+                else CameraModel()
+            )
         return dataclasses.replace(
-            self, control_period_s=control, perception_period_s=perception, laser_timeout_s=laser
+            self,
+            control_period_s=control,
+            perception_period_s=perception,
+            laser_timeout_s=laser,
+            camera=camera,
         )
 
     def ticks(self, period_s: float | None) -> int:

@@ -38,9 +38,11 @@ one frame every period with the laser as it is (policy ``snapshot``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -59,9 +61,11 @@ from omnid.sim.adapters import (
     DirectTiltSensor,
     EmulatedControlUnit,
     EmulatedTiltSensor,
+    lit_share,
     make_control_unit,
     make_tilt_sensor,
 )
+from omnid.sim.camera import SimCamera, SimFrame
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
 from omnid.sim.faults import FAULT_KINDS, Fault, FaultInjector, FaultKind, InjectedFault
@@ -71,7 +75,7 @@ from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.settings import PerceptionMode, SimSettings
 from omnid.sim.story import Observation, ReactiveRider
-from omnid.sim.world import RigMount, cast_laser, rig_to_world
+from omnid.sim.world import RigMount, World, cast_laser, rig_to_world
 
 __all__ = [
     "FAULT_KINDS",
@@ -123,6 +127,7 @@ class Simulator:
         progress: Callable[[float, Simulator], None] | None = None,
         faults: Sequence[Fault] = (),
         joystick: JoystickScript | None = None,
+        world_changes: Sequence[tuple[float, World]] = (),
     ) -> None:
         self.course = course
         self.controller = controller
@@ -145,7 +150,9 @@ class Simulator:
             )
         self.rig = rig
         self.pattern = pattern or DotPattern()
-        self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
+        self.control_unit = make_control_unit(
+            self.chair, s.control_unit, s.watchdog_s, s.laser_delay_s, s.laser_jitter_s, s.seed
+        )
         self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
         if rider is not None:
             self.tilt = make_tilt_sensor(rider, s.tilt_link, s.tilt_noise_deg, s.seed)
@@ -159,11 +166,23 @@ class Simulator:
         if s.perception == "pipeline":
             self.install()
         self._box_rects, self._drop_rects = world_rects(course.world)
+        self.world_changes = sorted(world_changes, key=lambda c: c[0])
+        x0, x1 = course.x_range_mm
+        y0, y1 = course.y_range_mm
+        assert s.camera is not None
+        self.camera = SimCamera(
+            s.camera, self.rig, self.mount, course.world, (x0 - 3000, x1 + 3000, y0 - 3000, y1 + 3000),
+            seed=s.seed,
+        )  # fmt: skip
         # the capture cycle of ``omnid run``; a controller that does not switch the laser gets
         # the snapshot policy (one frame every period, laser as it is)
         self.drives_laser = hasattr(controller, "capturing") and hasattr(controller, "laser_on")
         self.capture_cycle = CaptureCycle(self._capture_settings())
-        self._read: tuple[float, float] | None = None  # camera read in progress: (start, due)
+        self._read_since: float | None = None  # a flushed read asked for frames after this
+        self._poses: deque[tuple[float, float, float, float]] = deque(maxlen=64)
+        self._waiting: CaptureJob | None = None  # the job the (one) worker takes next
+        self._worker_free_s = 0.0
+        self.superseded = 0  # jobs replaced by a newer one before the worker took them
         # Laser hits per pose: a chair standing still (refused, resting) sees the same dots, so
         # truth perception casts them once per pose; fresh noise is drawn on every use.
         self._hits_cache: dict[tuple[float, float, float], Any] = {}
@@ -187,7 +206,7 @@ class Simulator:
 
     def laser_hits(self, pose: tuple[float, float, float] | None = None) -> Any:
         """``cast_laser`` at ``pose`` (default: the chair's current pose), remembered for the
-        last few distinct poses (the world does not change during a run)."""
+        last few distinct poses (cleared when the world changes)."""
         key = pose or self.chair.pose
         hits = self._hits_cache.get(key)
         if hits is None:
@@ -285,15 +304,44 @@ class Simulator:
         return cloud
 
     def perceive_job(self, job: CaptureJob) -> PointCloud:
-        """The cloud of one capture job: its frames rendered as they were taken (pose, laser as
-        switched), through the vision step. A job without a mask (``snapshot``) is subtracted
-        against a laser-off rendering at the base pose."""
-        base_pose, base_laser = job.base.source
-        capture = None
-        if self.settings.perception == "pipeline" and base_laser:
-            mask_pose, mask_laser = job.masks[0].source if job.masks else (base_pose, False)
-            capture = self.capture(mask_pose, mask_laser, base_pose, base_laser)
-        return self._perceive_capture(capture, base_pose, base_laser)
+        """The cloud of one capture job, as the daemon's worker would compute it: the frames
+        rendered as the simulated cameras took them (pose, laser light, noise), each mask moved
+        to the base's pose by the job's motion (``perception.motion_compensation``), then the
+        vision step. A job without a mask (``snapshot``) is subtracted against the same frame
+        rendered without laser."""
+        base: SimFrame = job.base.source
+        if self.injector.active("perception_exception"):
+            raise InjectedFault("injected fault: the vision pipeline raised")
+        mode = self.settings.perception
+        if mode == "off" or not base.laser:
+            return PointCloud(floor_depth_mm=self.mount.height_mm)
+        if mode == "truth":
+            return self._truth_cloud(base.pose)
+        from omnid.core.pipeline import perceive
+        from omnid.daemon.perception_worker import job_capture
+
+        masks = [m.source for m in job.masks] or [
+            dataclasses.replace(base, lit=0.0, seed=base.seed + 1)
+        ]
+        motions = list(job.mask_motions) or [None]
+        cfg = getattr(self.controller, "config", None)
+        if cfg is not None and not cfg.perception.motion_compensation:
+            motions = [None] * len(masks)
+        offset = float(cfg.perception.rig_x_offset_mm) if cfg is not None else 0.0
+        capture = job_capture(
+            self._frame_images(base),
+            [self._frame_images(m) for m in masks],
+            motions,
+            self.calibration.rig,
+            offset,
+            job.t_s,
+        )
+        method, settings = self._pipeline()
+        cloud: PointCloud = perceive(capture, self.calibration, method, settings)  # type: ignore[arg-type]
+        return cloud
+
+    def _frame_images(self, frame: SimFrame) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        return self.camera.render(frame, self.laser_hits(frame.pose))
 
     def perceive_now(self) -> PointCloud:
         """The point cloud the daemon would get from a capture at the current pose (laser as
@@ -327,20 +375,28 @@ class Simulator:
         return text
 
     def _capture_settings(self) -> CaptureSettings:
-        """The capture cycle's settings: the controller's ``perception`` configuration, with the
-        period and laser timeout as the simulation settings resolved them."""
+        """The capture cycle's settings: the controller's configuration (``perception``,
+        ``camera``, ``motion``), with the period and laser timeout as the simulation settings
+        resolved them; without a configuration the snapshot policy at the simulated cameras'
+        rate."""
         s = self.settings
-        policy = "stationary" if self.drives_laser else "snapshot"
         assert s.perception_period_s is not None and s.laser_timeout_s is not None
         changes: dict[str, Any] = {
-            "policy": policy,
             "period_s": s.perception_period_s,
             "laser_timeout_s": s.laser_timeout_s,
         }
         cfg = getattr(self.controller, "config", None)
+        if not self.drives_laser:
+            changes["policy"] = "snapshot"
         if cfg is not None:
-            return CaptureSettings.from_config(cfg.perception, **changes)
-        return CaptureSettings(frame_timeout_s=s.frame_timeout_s, **changes)
+            return CaptureSettings.from_config(cfg, **changes)
+        assert s.camera is not None
+        return CaptureSettings(
+            frame_timeout_s=s.frame_timeout_s,
+            frame_period_s=s.camera.period_s,
+            exposure_s=min(1.25 * s.camera.exposure_s, 0.9 * s.camera.period_s),
+            **changes,
+        )
 
     def run(self, duration_s: float) -> SimResult:
         """Simulate ``duration_s`` virtual seconds; returns the trajectory, contacts, refusals,
@@ -361,8 +417,13 @@ class Simulator:
         # memory by 3.4 kB per simulated second (6 MB in a 30-minute soak) as they filled.
         traj = np.full((n_ticks // k_rec + 2, 4), np.nan)
         speeds = np.full((n_ticks + 1, 3), np.nan)
-        cmds = np.full((n_ticks // k_ctrl + 1, 5), np.nan)
-        steps = np.full((n_ticks // k_ctrl + 1, 7), np.nan)
+        # control steps: the 50 Hz grid plus the extra steps a laser switch runs at once (as
+        # the daemon's control loop does), at most two per mask or cycle
+        cs = self.capture_cycle.settings
+        gap = min(cs.mask_interval_s if cs.policy == "stream" else cs.period_s, cs.period_s)
+        n_steps = n_ticks // k_ctrl + 1 + 2 * math.ceil(duration_s / gap) + 4
+        cmds = np.full((n_steps, 5), np.nan)
+        steps = np.full((n_steps, 7), np.nan)
         reason_bits: dict[str, int] = {}
         n_traj = n_speed = n_cmd = 0
         contacts: list[tuple[float, Contact]] = []
@@ -378,6 +439,7 @@ class Simulator:
         last_progress = -math.inf
 
         def finish(job: CaptureJob) -> None:
+            """The worker takes ``job`` now: its wall time is charged as virtual time."""
             w0 = time.perf_counter()
             try:
                 cloud = self.perceive_job(job)
@@ -387,8 +449,10 @@ class Simulator:
                 return
             took = time.perf_counter() - w0
             t_perc.append(took)
-            pose = job.base.source[0]
-            pending.append((now + max(took, s.perception_latency_s), job.t_s, cloud, pose))
+            self._worker_free_s = now + took
+            at = max(now + took, job.t_s + s.perception_latency_s)
+            pending.append((at, job.t_s, cloud, job.base.source.pose))
+            pending.sort(key=lambda p: p[0])
 
         def failed(failure: CaptureFailure) -> None:
             errors.append((now, failure.message))
@@ -398,6 +462,8 @@ class Simulator:
             now = k * dt
             self.now_s = now
             self.injector.apply(now, self.control_unit, self.tilt)
+            while self.world_changes and self.world_changes[0][0] <= now + 1e-9:
+                self.set_world(self.world_changes.pop(0)[1])
             if self.reactive is not None and k % k_tilt == 0:
                 if (
                     self.reactive.done_s is not None
@@ -427,8 +493,8 @@ class Simulator:
                 if s.record_seen and np.any(keep):
                     w = rig_to_world(cloud.xyz[keep], pose, self.mount)
                     seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
-            self._perception_step(now, finish, failed)
-            if k % k_ctrl == 0:
+            kick = self._perception_step(now, finish, failed)
+            if k % k_ctrl == 0 or kick:
                 w0 = time.perf_counter()
                 command = ctl.step(now)
                 took_ctrl = time.perf_counter() - w0
@@ -533,45 +599,87 @@ class Simulator:
         fwd = float(getattr(demand, "forward", 0.0)) if demand is not None else 0.0
         return 0.5 * (c.left_speed_mm_s + c.right_speed_mm_s), fwd
 
+    def set_world(self, world: World) -> None:
+        """The world changes now (a hazard steps into view): laser, cameras and the truth
+        measures see the new one."""
+        self.course = dataclasses.replace(self.course, world=world)
+        self._hits_cache.clear()
+        self.camera.set_world(world)
+        self._box_rects, self._drop_rects = world_rects(world)
+
+    def _pose_at(self, t_s: float) -> Pose:
+        """The chair's true pose at ``t_s`` (linear between physics ticks)."""
+        poses = self._poses
+        if not poses or t_s >= poses[-1][0]:
+            return self.chair.pose
+        prev = poses[0]
+        for cur in poses:
+            if cur[0] >= t_s:
+                if cur is prev or cur[0] <= prev[0]:
+                    return cur[1], cur[2], cur[3]
+                w = (t_s - prev[0]) / (cur[0] - prev[0])
+                dth = math.remainder(cur[3] - prev[3], math.tau)
+                return (
+                    prev[1] + w * (cur[1] - prev[1]),
+                    prev[2] + w * (cur[2] - prev[2]),
+                    prev[3] + w * dth,
+                )
+            prev = cur
+        return prev[1], prev[2], prev[3]
+
+    def _lit_share(self, t0_s: float, t1_s: float) -> float:
+        cu = self.control_unit
+        return lit_share(cu.laser_switches, t0_s, t1_s, bool(cu.laser_on))
+
     def _perception_step(
         self,
         now: float,
         finish: Callable[[CaptureJob], None],
         failed: Callable[[CaptureFailure], None],
-    ) -> None:
-        """One tick of the daemon's capture cycle against the simulated camera.
+    ) -> bool:
+        """One tick of the daemon's capture cycle against the simulated cameras; True when the
+        cycle changed its laser request (the daemon then runs a control cycle at once).
 
-        The camera: a read that must follow a laser switch (the cycle's ``flush_needed``) waits
-        ``frame_interval_s`` for a fresh frame; any other read returns the frame the camera
-        holds at once. A frame shows the chair's pose and the laser as switched when the read
-        completes. With the cameras stopped no frame comes, and the source gives up after
-        ``frame_timeout_s``."""
-        s = self.settings
+        The cameras free-run (:class:`omnid.sim.camera.SimCamera`): every frame delivered by
+        now goes to the cycle (``stream``), or — for a cycle that waits for one frame — the
+        first one delivered after the read began, exposed wholly after it when the cycle asks
+        for a flush (``stationary``: as a flushed V4L2 queue). With the cameras stopped no frame
+        comes. The one worker takes the newest job when it is free (a job it has not started is
+        replaced by a newer one, as the daemon's mailbox does)."""
         cycle = self.capture_cycle
-        for _ in range(4):  # an immediate read is delivered in the same tick
-            if self._read is not None and not cycle.wants_frame():
-                self._read = None  # the cycle gave up on this frame
-            if self._read is not None:
-                started, due = self._read
-                if self.injector.active("camera_stopped"):
-                    if now - started >= s.frame_timeout_s:
-                        self._read = None
-                        cycle.frame_failed(f"camera: no frame within {s.frame_timeout_s:g} s")
-                elif now + 1e-9 >= due:
-                    self._read = None
-                    pose, laser = self.chair.pose, bool(self.control_unit.laser_on)
-                    cycle.on_frame(Frame(now, None, (pose, laser)))
-            for out in cycle.poll(now):
-                if isinstance(out, CaptureJob):
-                    finish(out)
-                else:
-                    failed(out)
-            if self.drives_laser:
-                self.controller.laser_on = cycle.laser_on
-                self.controller.capturing = cycle.capturing
-            if self._read is not None or not cycle.wants_frame():
-                return
-            wait = s.frame_interval_s if cycle.flush_needed else 0.0
-            self._read = (now, now + wait)
-            if wait > 0.0:
-                return
+        self._poses.append((now, *self.chair.pose))
+        if self.injector.active("camera_stopped"):
+            self.camera.skip_until(now)
+            frames: list[SimFrame] = []
+        else:
+            frames = self.camera.delivered_until(now, self._pose_at, self._lit_share)
+        stream = cycle.settings.policy == "stream"
+        half = 0.5 * self.camera.model.exposure_s
+        for f in frames:
+            if not stream:
+                if not cycle.wants_frame() or self._read_since is None:
+                    continue
+                if cycle.flush_needed and f.t_s - half < self._read_since:
+                    continue
+            cycle.on_frame(Frame(f.t_s, None, f))
+        before = cycle.laser_on
+        for out in cycle.poll(now):
+            if isinstance(out, CaptureFailure):
+                failed(out)
+                continue
+            if self._waiting is not None:
+                self.superseded += 1
+            self._waiting = out
+        if self._waiting is not None and now + 1e-9 >= self._worker_free_s:
+            job, self._waiting = self._waiting, None
+            finish(job)
+        if not stream:
+            if not cycle.wants_frame():
+                self._read_since = None
+            elif self._read_since is None:
+                self._read_since = now
+        if self.drives_laser:
+            self.controller.laser_on = cycle.laser_on
+            self.controller.capturing = cycle.capturing
+            return cycle.laser_on != before
+        return False
