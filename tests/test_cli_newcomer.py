@@ -94,7 +94,7 @@ def test_help_texts_say_the_truth_without_markup() -> None:
     run_help = subparser("run").format_help()
     assert "/etc/omnid/omnid.yaml" in " ".join(run_help.split())
     demo = subparser("demo")
-    assert demo.get_default("duration_s") == 130.0
+    assert demo.get_default("default_duration_s") == 130.0
     assert "(130)" in demo.format_help() and "(45)" not in demo.format_help()
     parser = build_parser()
     action = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")

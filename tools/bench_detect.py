@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 from omnid.core.detect import DetectionParams, detect_dots, to_gray  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
 from omnid.core.laser import DotPattern  # noqa: E402
-from omnid.sim.render import RenderOptions, render_capture, visible_truth  # noqa: E402
+from omnid.sim.render import RenderOptions, SpotModel, render_capture, visible_truth  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EDGE_MARGIN_PX = 4.0
@@ -186,10 +186,8 @@ def main() -> int:
     old_render = load_module_at(args.before, "omnid/sim/render.py", "render_before")
     print(f"before = {args.before}" + ("" if old_detect else " (not found: skipped)"))
     scenes = {
-        "sensor (noise, shot, flicker)": RenderOptions.realistic(
-            halo_fraction=0.0, ghost_fraction=0.0
-        ),
-        "sensor, BGR": RenderOptions.realistic(halo_fraction=0.0, ghost_fraction=0.0, color=True),
+        "sensor (noise, shot, flicker)": RenderOptions.realistic(spots=SpotModel()),
+        "sensor, BGR": RenderOptions.realistic(spots=SpotModel(), color=True),
         "realistic (+ speckled halos, ghosts)": RenderOptions.realistic(),
     }
     reps_render = max(args.repeats // 3, 5)

@@ -35,4 +35,5 @@ def register(subparsers: Any) -> None:
 def handle(args: argparse.Namespace) -> int:
     from omnid.sim import scenario
 
+    args.duration_s = args.default_duration_s if args.duration_s is None else args.duration_s
     return scenario.run_and_report(args, None, title="omnid demo")

@@ -41,6 +41,8 @@ def handle(args: argparse.Namespace) -> int:
     )
     module.add_arguments(sub)
     sub_args = sub.parse_args(args.options)
+    import contextlib
+    import os
     import signal
 
     def interrupted(signum: int, frame: object) -> None:
@@ -56,3 +58,9 @@ def handle(args: argparse.Namespace) -> int:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+        # a signal before the emulator's own cleanup was armed: its pty is gone with this
+        # process, so is the link to it (only ever a symlink, never a file)
+        link = getattr(sub_args, "link", None)
+        if link and os.path.islink(link):
+            with contextlib.suppress(OSError):
+                os.unlink(link)

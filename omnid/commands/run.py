@@ -29,6 +29,20 @@ def register(subparsers: Any) -> None:
         metavar="JSON",
         help="at exit, write the control-loop and perception timings here (benchmarks)",
     )
+    parser.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record what the chair saw and decided as MCAP (record.path; rotation and budget "
+        "as record.* says; needs the 'record' extra)",
+    )
+    parser.add_argument(
+        "--view",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="HOST:PORT",
+        help="serve the recorded topics live over the Foxglove WebSocket protocol (default "
+        "127.0.0.1:8765)",
+    )
     parser.set_defaults(func=handle)
 
 
@@ -50,4 +64,4 @@ def handle(args: argparse.Namespace) -> int:
         return 2 if n_err else 0
     from omnid.daemon.run import main
 
-    return main(args.config, stats_out=args.stats_out)
+    return main(args.config, stats_out=args.stats_out, record=args.record, view=args.view)

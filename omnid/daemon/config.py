@@ -28,6 +28,7 @@ from omnid.devices.joystick import JoystickSettings as JoystickDeviceSettings
 from omnid.devices.teleop import TeleopSettings
 from omnid.devices.tilt import TiltSettings as TiltSensorSettings
 from omnid.errors import ConfigError
+from omnid.record.settings import RecordSettings
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +119,7 @@ class OmnidConfig(Settings):
         default_factory=JoystickDeviceSettings
     )  # the joystick link (used when rider.joystick.enabled)
     service: ServiceSettings = field(default_factory=ServiceSettings)
+    record: RecordSettings = field(default_factory=RecordSettings)  # MCAP recording, live view
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -378,6 +378,11 @@ class RiderMux:
             )
         raise ValueError(f"unknown source {name!r}")
 
+    def source_demands(self, now_s: float) -> dict[str, RiderDemand | None]:
+        """Each source's own demand at ``now_s`` (None: disabled or idle), in priority order —
+        what :meth:`decide` chooses from (for recordings and the live view)."""
+        return {n: self._source_demand(n, now_s) for n in self.settings.priority}
+
     def decide(self, now_s: float) -> RiderDemand:
         """The demand at monotonic time ``now_s``: any stop wins, else the first source moving."""
         demands = [(n, self._source_demand(n, now_s)) for n in self.settings.priority]

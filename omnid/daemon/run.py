@@ -112,6 +112,13 @@ class Daemon:
             checks.raise_first_error(holder.path)
             calibration = checks.calibration
         self.calibration = calibration
+        self.recording: Any = None  # omnid.record.session.DaemonRecording (record.path/view)
+        rec = holder.config.record
+        if rec.enabled or rec.view:
+            from omnid.record.session import DaemonRecording
+
+            self.recording = DaemonRecording(holder.config, self.calibration)
+            self.core = self.recording.wrap(self.core)
         self.tilt: Any = None
         self.joystick: Any = None
         self.worker: Any = None
@@ -204,6 +211,8 @@ class Daemon:
         if healthy != self._link_was_ok and (healthy or self._link_was_ok is not None):
             was = self._link_was_ok
             self._link_was_ok = healthy
+            if self.recording is not None:
+                self.recording.on_fault("control_unit_link", "back" if healthy else "lost", now)
             if healthy:
                 if was is None:
                     log.info("control unit link up")
@@ -290,6 +299,8 @@ class Daemon:
 
     def _perception_error(self, what: str, exc: BaseException | str) -> None:
         self.stats.perception_errors += 1
+        if self.recording is not None:
+            self.recording.on_fault(f"perception_{what}", str(exc))
         n = self.stats.perception_errors
         if n == 1 or n % 20 == 0:
             log.warning(
@@ -358,8 +369,11 @@ class Daemon:
                     self.stats.note(self.stats.capture_s, time.monotonic() - out.started_s)
                     if out.masks:
                         self.stats.note(self.stats.mask_to_base_s, out.t_s - out.masks[0].t_s)
+                    cap = out.stereo_capture()
+                    if self.recording is not None:
+                        self.recording.on_capture(cap)  # rate-limited, encoded off the loop
                     w0 = time.monotonic()
-                    cloud = await self.worker.perceive(out.stereo_capture())
+                    cloud = await self.worker.perceive(cap)
                     t_done = time.monotonic()
                     self.core.on_perception(cloud, out.t_s)
                     self.stats.note(self.stats.perception_s, t_done - w0)
@@ -438,7 +452,12 @@ class Daemon:
             # keep the neutral pose measured at start across a reload
             new.mux.tilt.calibrating = False
             new.mux.tilt.set_neutral(old.mux.tilt.roll_offset_deg, old.mux.tilt.pitch_offset_deg)
-        self.core = new
+        if self.recording is not None:
+            self.core = self.recording.wrap(new)
+            # replay goes on with the recorded start configuration: the reload is marked
+            self.recording.on_fault("config_reloaded", "replay compares with the start config")
+        else:
+            self.core = new
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -459,6 +478,8 @@ class Daemon:
 
         gc.collect()
         gc.freeze()  # start-up objects leave the collector's scans: shorter GC pauses in the loop
+        if self.recording is not None:
+            self.recording.start()  # a file that cannot be written is logged, never fatal
         await self.link.start()
         try:
             await self._start_inputs()
@@ -502,14 +523,29 @@ class Daemon:
         await self.link.stop()
         self.holder.close()
         log.info("omnid stopped; wheels at zero")
+        if self.recording is not None:
+            self.recording.close()
 
 
-def main(config_path: str, stats_out: str | None = None) -> int:
+def main(
+    config_path: str,
+    stats_out: str | None = None,
+    record: str | None = None,
+    view: str | None = None,
+) -> int:
     """Load the configuration and calibration (errors name file and key) and run until
-    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit."""
+    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit; ``record`` /
+    ``view``: the command line's ``--record FILE`` / ``--view HOST:PORT`` (over ``record.*``)."""
     from omnid.daemon.preflight import preflight
 
     holder = ConfigHolder(config_path)
+    if record or view:
+        import dataclasses
+
+        from omnid.record.session import with_overrides
+
+        cfg = holder.config
+        holder.config = dataclasses.replace(cfg, record=with_overrides(cfg.record, record, view))
     checks = preflight(holder.config, config_path)
     checks.raise_first_error(config_path)
     for warning in checks.warnings:

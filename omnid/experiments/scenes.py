@@ -27,9 +27,9 @@ from numpy.typing import NDArray
 
 from omnid.core.calibration import Calibration, calibrate_from_capture
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
-from omnid.sim.render import RenderOptions, render_camera_pair
+from omnid.sim.laser import LaserProjector, ideal_lattice
+from omnid.sim.render import RenderOptions, render_hits
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.scenes import Scene, get_scene
 from omnid.sim.world import LaserHits, cast_laser
@@ -37,34 +37,44 @@ from omnid.sim.world import LaserHits, cast_laser
 METHODS: tuple[str, ...] = ("best", "thesis")
 
 
-def scene_hits(scene: Scene, rig: StereoRig) -> LaserHits:
-    """Where the laser dots of ``scene`` fall, and which mirror sees each."""
-    return cast_laser(scene.world, scene.pose, scene.mount, DotPattern(), rig)
+def scene_hits(scene: Scene, rig: StereoRig, laser: LaserProjector | None = None) -> LaserHits:
+    """Where the dots of ``laser`` (default: :func:`ideal_lattice`) fall in ``scene``, and which
+    mirror sees each."""
+    return cast_laser(scene.world, scene.pose, scene.mount, laser or ideal_lattice(), rig)
 
 
-def render_hits(
-    rig: StereoRig, hits: LaserHits, seed: int, options: RenderOptions | None = None
-) -> StereoCapture:
-    """Mask/base capture in which each camera shows only the dots it can see."""
-    rng = np.random.default_rng(seed)
-    opts = options or RenderOptions()
-    m1, b1 = render_camera_pair(rig.cam1, rig.cam1.project(hits.xyz[hits.visible1]), opts, rng)
-    m2, b2 = render_camera_pair(rig.cam2, rig.cam2.project(hits.xyz[hits.visible2]), opts, rng)
-    return StereoCapture(m1, b1, m2, b2)
-
-
-def floor_capture(rig: StereoRig, seed: int, options: RenderOptions | None = None) -> StereoCapture:
-    """The empty floor at the rig's floor depth, as ``omnid calibrate`` wants it."""
+def floor_hits(
+    rig: StereoRig, laser: LaserProjector | None = None, x_offset_mm: float | None = None
+) -> LaserHits:
+    """The laser's dots on the empty floor at the rig's floor depth."""
     from omnid.sim.scenes import floor
     from omnid.sim.world import RigMount
 
-    scene = floor(RigMount(height_mm=rig.floor_depth_mm))
-    return render_hits(rig, scene_hits(scene, rig), seed, options)
+    mount = RigMount(height_mm=rig.floor_depth_mm)
+    if x_offset_mm is not None:
+        mount = RigMount(x_offset_mm=x_offset_mm, height_mm=rig.floor_depth_mm)
+    return scene_hits(floor(mount), rig, laser)
 
 
-def calibrate_on_floor(rig: StereoRig, seed: int) -> Calibration:
+def floor_capture(
+    rig: StereoRig,
+    seed: int,
+    options: RenderOptions | None = None,
+    laser: LaserProjector | None = None,
+) -> StereoCapture:
+    """The empty floor at the rig's floor depth, as ``omnid calibrate`` wants it."""
+    return render_hits(rig, floor_hits(rig, laser), seed, options)
+
+
+def calibrate_on_floor(
+    rig: StereoRig,
+    seed: int,
+    laser: LaserProjector | None = None,
+    options: RenderOptions | None = None,
+) -> Calibration:
     """Calibration from a rendered capture of the empty floor (no other knowledge of ``rig``)."""
-    return calibrate_from_capture(floor_capture(rig, seed), rig.floor_depth_mm, rig.baseline_mm)
+    cap = floor_capture(rig, seed, options, laser)
+    return calibrate_from_capture(cap, rig.floor_depth_mm, rig.baseline_mm)
 
 
 def assign_truth(
@@ -117,13 +127,22 @@ class SceneRun:
     truth_index: NDArray[np.intp]
 
 
-def evaluate(scene: Scene, rig: StereoRig, calib: Calibration, method: str, seed: int) -> SceneRun:
-    """Render ``scene`` on ``rig``, perceive it with ``method`` (its own detector) and score it."""
+def evaluate(
+    scene: Scene,
+    rig: StereoRig,
+    calib: Calibration,
+    method: str,
+    seed: int,
+    laser: LaserProjector | None = None,
+    options: RenderOptions | None = None,
+) -> SceneRun:
+    """Render ``scene`` on ``rig`` with ``laser`` (default :func:`ideal_lattice`) and
+    ``options``, perceive it with ``method`` (its own detector) and score it."""
     from omnid.core.classify import ClassifySettings
     from omnid.core.pipeline import PerceptionSettings, perceive
 
-    hits = scene_hits(scene, rig)
-    cap = render_hits(rig, hits, seed)
+    hits = scene_hits(scene, rig, laser)
+    cap = render_hits(rig, hits, seed, options)
     t0 = time.perf_counter()
     settings = PerceptionSettings(detection_method=None)  # each method with its own detector
     cloud = perceive(cap, calib, method, settings)  # type: ignore[arg-type]

@@ -96,11 +96,24 @@ def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int
             flush=True,
         )
 
+    recording = None
+    if getattr(args, "record", None) or getattr(args, "view", None):
+        from omnid.record.session import SimRecording
+
+        recording = SimRecording(controller, args.record, args.view, pace=bool(args.view))
+        controller = recording.core
     settings = SimSettings(perception=args.perception, seed=args.seed)
     sim = Simulator(course, controller, settings=settings, rider=rider, progress=progress)
+    if recording is not None:
+        recording.attach(sim)
     if not args.quiet:
         print(f"{title}: {args.duration_s:.0f} s in course '{course.name}'", flush=True)
-    result = sim.run(args.duration_s)
+    try:
+        result = sim.run(args.duration_s)
+    finally:
+        if recording is not None:
+            for segment in recording.close():
+                print(f"recording: {segment}", flush=True)
     path = write_report(
         args.out, course, result, title, notes, sim.chair.settings, story=rider is not None
     )
@@ -144,70 +157,42 @@ def write_floor_capture(directory: str, seed: int = 0) -> None:
 
 
 def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
-    """Serve the simulated chair to an ``omnid run`` in another process, in real time."""
+    """Serve the simulated chair to an ``omnid run`` in another process, in real time, until
+    SIGTERM/Ctrl-C (or ``--duration-s``): :class:`omnid.sim.bench.RealTimeChair`."""
     if controller is not None:
         raise OmnidError("--serve runs the chair for an external daemon; --drive cannot be used")
-    from omnid.devices.emulators.control_unit import ControlUnitEmulator
-    from omnid.sim.course import get_course
-    from omnid.sim.frame_server import FrameServer
-    from omnid.sim.simulator import SimSettings, Simulator
-
-    course = get_course(args.course)
-    sim = Simulator(course, None, settings=SimSettings(seed=args.seed))
-    emu = ControlUnitEmulator(plant=sim.chair)
-    t0 = time.monotonic()
-
-    def frame() -> Any:
-        laser = bool(emu.laser_on)  # advances the plant to now under the emulator's lock
-        sim.now_s = time.monotonic() - t0
-        cap = sim.render(laser_on=laser)
-        return sim.now_s, cap.base1, cap.base2
-
     import signal
 
-    import numpy as np
+    from omnid.sim.bench import RealTimeChair
 
-    from omnid.sim.results import chair_clearance_mm, world_rects
-
+    chair = RealTimeChair(
+        args.course, args.seed, frames_path=args.serve, cu_link=getattr(args, "link", None)
+    )
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
-    boxes, drops = world_rects(course.world)
-    pty = emu.open_pty()
-    print(f"control unit: {pty}", flush=True)
+    chair.start(tilt=False)
+    print(f"control unit: {chair.cu_path}", flush=True)
     print(f"cameras: sim+unix://{args.serve}", flush=True)
-    deadline = t0 + args.duration_s
-    closest = float("inf")
-    contacts = 0
-    last_print = t0
+    duration = getattr(args, "duration_s", None)
+    deadline = None if duration is None else chair.t0 + duration
+    last_print = chair.t0
     try:
-        with FrameServer(args.serve, frame):
-            while time.monotonic() < deadline and not stop:
-                time.sleep(0.02)
-                _ = emu.clocks  # advance the plant to now
-                chair = sim.chair
-                closest = min(closest, chair_clearance_mm(chair, boxes, drops))
-                for c in chair.contacts(course.world):
-                    contacts += 1
-                    print(f"t={time.monotonic() - t0:.2f} s: {c.kind} ({c.part})", flush=True)
-                    stop.append(True)
-                now = time.monotonic()
-                if now - last_print >= 0.5:
-                    last_print = now
-                    x, y, th = chair.pose
-                    print(
-                        f"t={now - t0:.2f} s chair ({x:.0f}, {y:.0f}) mm {np.degrees(th):.1f}° "
-                        f"speed {chair.left_speed_mm_s:.0f}/{chair.right_speed_mm_s:.0f} mm/s "
-                        f"laser {'on' if emu.laser_on else 'off'}",
-                        flush=True,
-                    )
+        while (deadline is None or time.monotonic() < deadline) and not stop:
+            time.sleep(0.02)
+            for text in chair.poll():
+                print(f"t={time.monotonic() - chair.t0:.2f} s: {text}", flush=True)
+                stop.append(True)
+            if time.monotonic() - last_print >= 0.5:
+                last_print = time.monotonic()
+                print(chair.status_line(), flush=True)
     except KeyboardInterrupt:
         pass
     finally:
-        emu.close()
-    x, y, _ = sim.chair.pose
+        chair.close()
+    x, y, _ = chair.sim.chair.pose
     print(
-        f"result: contacts {contacts}, closest approach {closest:.0f} mm, "
+        f"result: contacts {len(chair.contacts)}, closest approach {chair.closest_mm:.0f} mm, "
         f"chair at ({x:.0f}, {y:.0f}) mm",
         flush=True,
     )
-    return 1 if contacts else 0
+    return 1 if chair.contacts else 0

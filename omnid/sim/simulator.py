@@ -291,6 +291,9 @@ class Simulator:
         """The vision step the daemon's worker runs (timed by the caller)."""
         if self.injector.active("perception_exception"):
             raise InjectedFault("injected fault: the vision pipeline raised")
+        on_capture = getattr(self.controller, "on_capture", None)  # a recording core
+        if capture is not None and on_capture is not None:
+            on_capture(capture)
         mode = self.settings.perception
         if mode == "off" or not base_laser or (mode == "pipeline" and capture is None):
             return PointCloud(floor_depth_mm=self.mount.height_mm)
