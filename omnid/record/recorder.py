@@ -119,6 +119,7 @@ class McapSegment:
             compression, CompressionType.NONE
         )
         self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
         self.stream: BinaryIO = open(path, "xb")  # noqa: SIM115 - closed in close()
         self.writer = Writer(self.stream, chunk_size=256 * 1024, compression=kind)
         from omnid import __version__

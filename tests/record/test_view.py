@@ -102,3 +102,20 @@ def test_the_view_advertises_and_streams_the_topics() -> None:
                 break
     finally:
         rec.close()
+
+
+def test_the_layout_names_only_recorded_topics() -> None:
+    import re
+    from pathlib import Path
+
+    from omnid.record import topics as tp
+
+    layout = Path(__file__).resolve().parents[2] / "docs" / "foxglove" / "omnid-layout.json"
+    doc = json.loads(layout.read_text())
+    known = set(tp.JSON_SCHEMAS) | set(tp.PROTO_TOPICS)
+    named = set(re.findall(r'"(/[a-z0-9_/]+)', json.dumps(doc)))
+    assert named and named <= known, named - known
+    for path in re.findall(r'"(/[a-z0-9_/]+\.[a-z_]+)"', json.dumps(doc)):
+        topic, field = path.split(".")
+        if topic in tp.JSON_SCHEMAS:  # plotted fields are in the topic's schema
+            assert field in tp.JSON_SCHEMAS[topic][1]["properties"], path
