@@ -197,6 +197,7 @@ class CaptureCycle:
         self.failures = 0
         self.ignored_frames = 0  # delivered while none was wanted (or not usable)
         self.masks_taken = 0
+        self.frame_requests = 0  # counts the frames wanted one at a time (a flush for each)
         self._next_s = start_s  # the next cycle (or mask) starts no earlier than this
         self._started_s = start_s
         self._phase_s = start_s
@@ -210,7 +211,7 @@ class CaptureCycle:
         self._frames: deque[Frame] = deque(maxlen=8)
         self._trusted = False  # a reply has confirmed the laser timing since the last doubt
         self._laser_error: str | None = None
-        self._unconfirmed: tuple[float, bool] | None = (start_s, True)
+        self._unconfirmed_s: float | None = start_s  # oldest request no reply has confirmed
         self._last_frame_t: float | None = None
         self._off_at_s: float | None = None  # planned laser-off request
         self._on_at_s: float | None = None  # planned laser-on request
@@ -282,8 +283,8 @@ class CaptureCycle:
                     times.append(t)
             if self._off_at_s is None and self._on_at_s is None:
                 times.append(self._next_s)
-            if self._unconfirmed is not None:
-                times.append(self._unconfirmed[0] + s.laser_timeout_s)
+            if self._unconfirmed_s is not None:
+                times.append(self._unconfirmed_s + s.laser_timeout_s + s.laser_latency_s)
             return min(times)
         if self.phase == "idle":
             return self._next_s
@@ -319,6 +320,8 @@ class CaptureCycle:
     def _enter(self, phase: Phase, now_s: float) -> None:
         self.phase, self._phase_s = phase, now_s
         self._frame, self._frame_error = None, None
+        if phase in ("mask", "base", "snapshot"):
+            self.frame_requests += 1
 
     def _reported(self, on: bool) -> bool:
         r = self._report
@@ -401,7 +404,8 @@ class CaptureCycle:
         self.laser_on = on
         self._switch_s = now_s
         self._requests.append((now_s, on))
-        self._unconfirmed = (now_s, on)
+        if self._unconfirmed_s is None:
+            self._unconfirmed_s = now_s
 
     def _doubt(self, message: str) -> None:
         if self._laser_error is None:
@@ -421,24 +425,30 @@ class CaptureCycle:
             )
             return
         self._trusted = True
-        if self._unconfirmed is not None and self._unconfirmed[1] == on:
-            self._unconfirmed = None
+        since = self._unconfirmed_s
+        lat = self.settings.laser_latency_s
+        if since is not None and t_s >= since + lat:
+            last = self._requests[-1][0]
+            self._unconfirmed_s = None if t_s >= last + lat else last
 
     def _exposure(self, t_s: float) -> tuple[float, float]:
         half = 0.5 * self.settings.exposure_s + FRAME_TIME_GUARD_S
         return t_s - half, t_s + half
 
     def _plan_off(self, now_s: float) -> float | None:
-        """When to ask for the laser off so that the frame being exposed now keeps its light."""
+        """When to ask for the laser off: now, if the light can be out before the next
+        exposure begins (that frame is the mask); else when the frame being (or about to be)
+        exposed ends, so that it keeps its light. None before the first frame."""
         t_last = self._last_frame_t
         if t_last is None:
             return None
         period = self.settings.frame_period_s
-        k = math.floor((now_s - t_last) / period)
-        for j in (k, k + 1):
+        lat = self.settings.laser_latency_s
+        k = math.floor((now_s - t_last) / period) - 1
+        for j in range(k, k + 4):
             a, b = self._exposure(t_last + j * period)
-            if a <= now_s <= b:
-                return b
+            if now_s <= b:
+                return now_s if now_s <= a - lat else b
         return now_s
 
     def _stream(self, now: float, s: CaptureSettings, out: list[Output]) -> None:
@@ -446,12 +456,11 @@ class CaptureCycle:
             self.failures += 1
             out.append(CaptureFailure("laser", self._laser_error, now))
             self._laser_error = None
-        u = self._unconfirmed
-        if u is not None and now - u[0] + 1e-9 >= s.laser_timeout_s + s.laser_latency_s:
-            self._unconfirmed = None
+        u = self._unconfirmed_s
+        if u is not None and now - u + 1e-9 >= s.laser_timeout_s + s.laser_latency_s:
+            self._unconfirmed_s = now
             self._doubt(
-                f"control unit did not report the laser {'on' if u[1] else 'off'} within "
-                f"{s.laser_timeout_s:g} s"
+                f"control unit did not report the laser switched within {s.laser_timeout_s:g} s"
             )
             self.failures += 1
             out.append(CaptureFailure("laser", str(self._laser_error), now))
@@ -498,9 +507,12 @@ class CaptureCycle:
             self._last_frame_t = f.t_s
         due = self._mask_due_t
         if due is not None and f.t_s > due + 0.5 * s.frame_period_s:
-            # the planned mask never came (dropped, or mislabelled): try again soon
+            # the planned mask never came (dropped): try again two frames on (not while the
+            # replies are in doubt: then at the usual interval, the laser is not hammered)
             self._mask_due_t = None
-            self._next_s = min(self._next_s, f.t_s + s.laser_min_switch_s)
+            if self._trusted:
+                retry = f.t_s + max(s.laser_min_switch_s, 2 * s.frame_period_s)
+                self._next_s = min(self._next_s, retry)
         light = self._light_at(*self._exposure(f.t_s)) if self._trusted else None
         if light is None:
             self.ignored_frames += 1

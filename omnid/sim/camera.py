@@ -37,7 +37,12 @@ from numpy.typing import NDArray
 
 from omnid.config import require
 from omnid.core.geometry import MirrorCamera, StereoRig
-from omnid.sim.render import OUTSIDE_DISK_LEVEL, RenderOptions, render_camera_pair
+from omnid.sim.render import (
+    OUTSIDE_DISK_LEVEL,
+    RenderOptions,
+    render_camera_pair,
+    surface_shading,
+)
 from omnid.sim.world import LaserHits, RigMount, World
 
 Pose = tuple[float, float, float]
@@ -308,18 +313,21 @@ class SimCamera:
         sees scaled by the frame's lit share, sensor noise."""
         rng = np.random.default_rng(frame.seed)
         opts = dataclasses.replace(
-            self.options,
-            background_level=_RENDER_LEVEL,
-            background_texture=0.0,
-            spot_peak=self.options.spot_peak * frame.lit,
-            flicker=0.0,
+            self.options, background_level=_RENDER_LEVEL, background_texture=0.0, flicker=0.0
         )
         out: list[Image] = []
         for i, (cam, vis) in enumerate(
             ((self.rig.cam1, hits.visible1), (self.rig.cam2, hits.visible2))
         ):
-            rc = cam.project(hits.xyz[vis]) if frame.lit > 0 else np.zeros((0, 2))
-            _, base = render_camera_pair(cam, rc, opts, rng)
+            if frame.lit > 0:
+                rc = cam.project(hits.xyz[vis])
+                shade = surface_shading(
+                    hits.xyz[vis], hits.normal[vis], cam.y_mm, self.mount.height_mm
+                )
+                flux = frame.lit * hits.brightness[vis] * shade
+            else:
+                rc, flux = np.zeros((0, 2)), np.zeros(0)
+            _, base = render_camera_pair(cam, rc, opts, rng, flux=flux)
             img = base.astype(np.float32) + (self.scene(i, frame.pose) - np.float32(_RENDER_LEVEL))
             disk = self._rays[i].disk
             img = np.where(disk, img, base.astype(np.float32))

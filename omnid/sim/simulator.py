@@ -346,6 +346,9 @@ class Simulator:
             offset,
             job.t_s,
         )
+        on_capture = getattr(self.controller, "on_capture", None)  # a recording core
+        if on_capture is not None:
+            on_capture(capture)
         method, settings = self._pipeline()
         cloud: PointCloud = perceive(capture, self.calibration, method, settings)  # type: ignore[arg-type]
         return cloud
@@ -505,6 +508,9 @@ class Simulator:
                     seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
             kick = self._perception_step(now, finish, failed)
             if k % k_ctrl == 0 or kick:
+                if n_cmd == len(cmds):  # more extra steps than foreseen: grow the records
+                    cmds = np.vstack([cmds, np.full_like(cmds, np.nan)])
+                    steps = np.vstack([steps, np.full_like(steps, np.nan)])
                 w0 = time.perf_counter()
                 command = ctl.step(now)
                 took_ctrl = time.perf_counter() - w0
