@@ -17,7 +17,8 @@ the mask is therefore first moved to the base frame's pose:
   plane at depth Z the mirror camera maps the rig frame by a similarity (SPEC §2:
   x = −(f/K)/Z·X, y = (f/K)/Z·(Y − Y_i), then the camera's rotation), so a rigid motion of the
   floor is an affine map of the image;
-* :func:`compensated_mask` — the mask(s) warped by those maps (bilinear) and averaged.
+* :func:`compensated_mask` — the mask(s) warped by those maps (bilinear), the brighter of
+  the masks before and after the base taken pixel by pixel (see there why).
 
 Only the floor (and anything at the floor's depth) is compensated exactly; an object nearer the
 mirrors moves faster in the image (parallax) and leaves a residue proportional to its height and
@@ -145,23 +146,60 @@ def floor_motion_affine(
     return np.asarray(cv2.getAffineTransform(before, after.astype(np.float32)), dtype=np.float64)
 
 
-def warp_image(image: NDArray[np.uint8], affine: NDArray[np.float64]) -> NDArray[np.uint8]:
-    """``image`` moved by ``affine`` (bilinear; the border repeats the edge pixels)."""
+def disk_mask(cam: MirrorCamera, margin_px: float = 2.0) -> NDArray[np.uint8]:
+    """255 inside the mirror's disk (shrunk by ``margin_px``), 0 outside — the part of a frame
+    that sees the scene (the housing around it is fixed in the image)."""
+    rows, cols = cam.image_shape
+    dr = np.arange(rows, dtype=np.float32)[:, None] - np.float32(cam.center_row_px)
+    dc = np.arange(cols, dtype=np.float32)[None, :] - np.float32(cam.center_col_px)
+    inside = (dr * dr + dc * dc) <= np.float32(max(cam.disk_radius_px - margin_px, 0.0) ** 2)
+    return np.where(inside, np.uint8(255), np.uint8(0)).astype(np.uint8)
+
+
+def warp_image(
+    image: NDArray[np.uint8],
+    affine: NDArray[np.float64],
+    disk: NDArray[np.uint8] | None = None,
+) -> NDArray[np.uint8]:
+    """``image`` moved by ``affine`` (bilinear). With ``disk`` (:func:`disk_mask`) only the
+    scene inside the mirror disk moves: a pixel whose source lies outside the disk (the dark
+    housing, or floor the earlier frame did not see) keeps its own value, so the disk's edge
+    — fixed to the camera — still cancels."""
     rows, cols = image.shape[:2]
-    out = cv2.warpAffine(
-        image, affine, (cols, rows), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )
+    flags = cv2.INTER_LINEAR
+    out = cv2.warpAffine(image, affine, (cols, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    if disk is not None:
+        src_in = cv2.warpAffine(disk, affine, (cols, rows), flags=flags, borderValue=0)
+        out = np.where((src_in == 255) & (disk == 255), out, image)
     return np.asarray(out, dtype=np.uint8)
 
 
 def compensated_mask(
-    masks: Sequence[NDArray[np.uint8]], affines: Sequence[NDArray[np.float64] | None]
+    masks: Sequence[NDArray[np.uint8]],
+    affines: Sequence[NDArray[np.float64] | None],
+    disk: NDArray[np.uint8] | None = None,
 ) -> NDArray[np.uint8]:
-    """The masks, each warped by its affine map (None: as taken), averaged (rounded)."""
+    """The mask a base frame is subtracted against: each mask warped by its affine map (None:
+    as taken; ``disk``: see :func:`warp_image`), then the pixelwise **maximum** of them.
+
+    Why the maximum: the floor's motion is compensated exactly, but an edge off the floor (a
+    box's silhouette, a wall) moves with parallax; in masks taken before and after the base it
+    lies on either side of where the base shows it, so the brighter of the two covers it and
+    the subtraction leaves no bright residue for the detector to take for a dot (an average
+    would leave two half-bright ones). A laser dot is in neither mask and survives. A single
+    moved mask is grey-dilated by one pixel instead (its residue lies on one side only). The
+    price: the subtracted image is biased low by the local texture gradient, a few gray levels
+    against dots of ~150."""
     if not masks:
         raise ValueError("compensated_mask: no mask")
-    warped = [m if a is None else warp_image(m, a) for m, a in zip(masks, affines, strict=True)]
+    warped = [
+        m if a is None else warp_image(m, a, disk) for m, a in zip(masks, affines, strict=True)
+    ]
     if len(warped) == 1:
-        return warped[0]
-    acc = np.mean(np.stack(warped).astype(np.float32), axis=0)
-    return np.asarray(np.clip(np.rint(acc), 0, 255), dtype=np.uint8)
+        if affines[0] is None:
+            return warped[0]
+        return np.asarray(cv2.dilate(warped[0], np.ones((3, 3), np.uint8)), dtype=np.uint8)
+    out = warped[0]
+    for m in warped[1:]:
+        out = np.maximum(out, m)
+    return np.asarray(out, dtype=np.uint8)

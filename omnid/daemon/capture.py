@@ -22,15 +22,20 @@ and the same failures.
 
 Policies (``perception.capture``):
 
-* ``stream`` (default) — depth at the camera's frame rate while driving. The laser stays on;
-  every ``mask_interval_s`` it is switched off for one frame, timed on the cameras' frame clock:
-  off right after a frame's exposure ends, on again right after the mask frame's exposure ends.
-  A frame is *on* (a base) or *off* (a mask) only when every request that could still affect its
-  exposure is older than ``laser_latency_s`` (the hardware's worst case from request to light,
-  configuration); frames exposed while the light may be switching are not used. Each base frame
-  becomes a job with the latest mask (if it is at most ``max_mask_age_s`` older), and the
-  wheels' motion from the mask to the base (:mod:`omnid.core.motion_compensation`), so that the
-  mask can be moved to the base's pose before subtraction. The control unit's replies check the
+* ``stream`` (default) — depth at the camera's frame rate while driving. The laser is on but
+  for every ``mask_every_frames``-th frame of the cameras' clock (a mask): it is asked off at the
+  end of the last exposure that leaves it ``laser_latency_s`` (the hardware's worst case from
+  request to light, configuration) to go out before the mask's exposure, and on again when the
+  mask's exposure ends. A frame is *on* (a base) or *off* (a mask) only when every request that
+  could still affect its exposure is older than ``laser_latency_s``; frames exposed while the
+  light may be switching are not used (with a laser fast enough to switch between two
+  exposures, none: at 30 frames/s and one mask in three, 20 clouds/s). Each base frame becomes a
+  job with the masks before and after it (``mask_bracketing``: what the motion compensation of
+  the floor misses — the parallax of edges off the floor — lies on either side in the two, and
+  :func:`~omnid.core.motion_compensation.compensated_mask` takes the brighter) or the one before,
+  each at most ``max_mask_age_s`` away, and the
+  wheels' motion from each mask to the base (:mod:`omnid.core.motion_compensation`), so that
+  the masks can be moved to the base's pose before subtraction. The control unit's replies check the
   timing: a reply that contradicts what the requests imply (a laser slower than configured, a
   relay that failed, the unit's watchdog) fails the cycle and no frame is used until replies
   agree again; a request not confirmed within ``laser_timeout_s`` likewise. Mislabelled frames
@@ -79,11 +84,12 @@ class CaptureSettings:
     frame_timeout_s: float = 1.0  # a wanted frame pair must arrive within this
     flush_frames: bool = True  # stationary: frames queued before a laser switch are dropped
     frame_period_s: float = 1.0 / 30.0  # the cameras' frame clock
-    exposure_s: float = 0.010  # longest exposure of a frame
-    laser_latency_s: float = 0.03  # stream: request → light switched, worst case
+    exposure_s: float = 0.008  # longest exposure of a frame
+    laser_latency_s: float = 0.018  # stream: request → light switched, worst case
     laser_min_switch_s: float = 0.0  # stream: the laser may switch again only after this
-    mask_interval_s: float = 0.25  # stream: a fresh mask frame this often
-    max_mask_age_s: float = 0.6  # stream: a base this much newer than its mask is not used
+    mask_every_frames: int = 3  # stream: every n-th frame of the clock is a mask
+    mask_bracketing: bool = True  # stream: a base waits for the next mask (both are used)
+    max_mask_age_s: float = 0.3  # stream: a mask this far from its base is not used
     mm_per_clock: float = 471.0 / 15.0  # the wheels' travel per clock (motion between frames)
     track_mm: float = 560.0
 
@@ -95,7 +101,6 @@ class CaptureSettings:
             "frame_timeout_s",
             "frame_period_s",
             "exposure_s",
-            "mask_interval_s",
             "max_mask_age_s",
             "mm_per_clock",
             "track_mm",
@@ -104,6 +109,7 @@ class CaptureSettings:
         require(self.laser_latency_s >= 0, "laser_latency_s", "must not be negative")
         require(self.laser_min_switch_s >= 0, "laser_min_switch_s", "must not be negative")
         require(self.exposure_s < self.frame_period_s, "exposure_s", "must be below the period")
+        require(self.mask_every_frames >= 2, "mask_every_frames", "must be ≥ 2")
 
     @classmethod
     def from_config(cls, config: Any, **changes: Any) -> CaptureSettings:
@@ -119,7 +125,8 @@ class CaptureSettings:
             "exposure_s": float(cam.exposure_s),
             "laser_latency_s": float(p.laser_switch_latency_s),
             "laser_min_switch_s": float(p.laser_min_switch_interval_s),
-            "mask_interval_s": float(p.mask_interval_s),
+            "mask_every_frames": int(p.mask_every_frames),
+            "mask_bracketing": bool(p.mask_bracketing),
             "max_mask_age_s": float(p.mask_max_age_s),
             "mm_per_clock": float(m.mm_per_clock),
             "track_mm": float(m.track_mm),
@@ -213,9 +220,12 @@ class CaptureCycle:
         self._laser_error: str | None = None
         self._unconfirmed_s: float | None = start_s  # oldest request no reply has confirmed
         self._last_frame_t: float | None = None
+        self._k_last = 0  # index of the latest frame on the cameras' clock
+        self._mask_phase = 0  # mask frames: index ≡ this (mod mask_every_frames)
+        self._mask_k = 0  # the planned mask frame
         self._off_at_s: float | None = None  # planned laser-off request
         self._on_at_s: float | None = None  # planned laser-on request
-        self._mask_due_t: float | None = None  # capture time of the planned mask frame
+        self._waiting: list[tuple[Frame, Frame | None]] = []  # bases and their earlier mask
         self._samples: deque[tuple[float, int, int]] = deque()
 
     # -- inputs -------------------------------------------------------------------------
@@ -281,8 +291,6 @@ class CaptureCycle:
             for t in (self._off_at_s, self._on_at_s):
                 if t is not None:
                     times.append(t)
-            if self._off_at_s is None and self._on_at_s is None:
-                times.append(self._next_s)
             if self._unconfirmed_s is not None:
                 times.append(self._unconfirmed_s + s.laser_timeout_s + s.laser_latency_s)
             return min(times)
@@ -396,7 +404,7 @@ class CaptureCycle:
         for t, on in self._requests:
             if t <= a_s - lat:
                 state = on
-            elif t <= b_s:
+            elif t < b_s:  # a request at the very end of the exposure cannot reach it
                 return None
         return state
 
@@ -412,6 +420,7 @@ class CaptureCycle:
             self._laser_error = message
         self._trusted = False
         self._mask = None
+        self._waiting = []
 
     def _check_report(self, on: bool, t_s: float) -> None:
         expected = self._light_at(t_s, t_s)
@@ -435,21 +444,28 @@ class CaptureCycle:
         half = 0.5 * self.settings.exposure_s + FRAME_TIME_GUARD_S
         return t_s - half, t_s + half
 
-    def _plan_off(self, now_s: float) -> float | None:
-        """When to ask for the laser off: now, if the light can be out before the next
-        exposure begins (that frame is the mask); else when the frame being (or about to be)
-        exposed ends, so that it keeps its light. None before the first frame."""
-        t_last = self._last_frame_t
-        if t_last is None:
-            return None
-        period = self.settings.frame_period_s
-        lat = self.settings.laser_latency_s
-        k = math.floor((now_s - t_last) / period) - 1
-        for j in range(k, k + 4):
-            a, b = self._exposure(t_last + j * period)
-            if now_s <= b:
-                return now_s if now_s <= a - lat else b
-        return now_s
+    def _frame_t(self, k: int) -> float:
+        """Predicted capture time of frame ``k`` (the cameras' clock, from the latest frame)."""
+        assert self._last_frame_t is not None
+        return self._last_frame_t + (k - self._k_last) * self.settings.frame_period_s
+
+    def _plan_mask(self, now: float, s: CaptureSettings) -> None:
+        """Choose the next mask frame (every ``mask_every_frames``-th frame of the clock, the
+        first that can still be made dark) and when to ask for the laser off: at the end of
+        the last exposure that leaves the light ``laser_latency_s`` to go out before the
+        mask's (or at once, when no exposure ends in time)."""
+        earliest = max(now, self._switch_s + s.laser_min_switch_s)
+        n = s.mask_every_frames
+        m = self._k_last + 1
+        m += (self._mask_phase - m) % n
+        for _ in range(4):
+            latest = self._exposure(self._frame_t(m))[0] - s.laser_latency_s
+            if latest >= earliest:
+                ends = [self._exposure(self._frame_t(i))[1] for i in range(m - n, m)]
+                fits = [b for b in ends if earliest <= b <= latest]
+                self._off_at_s, self._mask_k = (max(fits) if fits else earliest), m
+                return
+            m += n
 
     def _stream(self, now: float, s: CaptureSettings, out: list[Output]) -> None:
         if self._laser_error is not None:
@@ -465,7 +481,7 @@ class CaptureCycle:
             self.failures += 1
             out.append(CaptureFailure("laser", str(self._laser_error), now))
             self._laser_error = None
-        frames, self._frames = list(self._frames), deque(maxlen=8)
+        frames, self._frames = sorted(self._frames, key=lambda f: f.t_s), deque(maxlen=8)
         for f in frames:
             self._take(f, s, out)
         if frames:
@@ -476,60 +492,86 @@ class CaptureCycle:
         if self._frame_error is not None:
             msg, self._frame_error = self._frame_error, None
             self._fail(out, "camera", msg, now)
+        self._flush_waiting(now, s, out, self._last_frame_t)
         self._schedule(now, s)
 
     def _schedule(self, now: float, s: CaptureSettings) -> None:
-        if self._off_at_s is None and self._on_at_s is None and now + 1e-9 >= self._next_s:
-            earliest = self._switch_s + s.laser_min_switch_s
-            off = self._plan_off(max(now, earliest))
-            if off is not None:
-                self._off_at_s = off
+        if self._last_frame_t is None:
+            return
+        if self._off_at_s is None and self._on_at_s is None and self.laser_on:
+            self._plan_mask(now, s)
         if self._off_at_s is not None and now + 1e-9 >= self._off_at_s and self.laser_on:
             self._off_at_s = None
+            m = self._mask_k
+            if self._exposure(self._frame_t(m))[0] < now + s.laser_latency_s:
+                return  # too late for this mask (a late poll): plan the next one
             self._request(False, now)
-            # the mask: the first frame exposed wholly after the light has certainly gone out
-            assert self._last_frame_t is not None
-            period = s.frame_period_s
-            k = math.ceil(
-                (now + s.laser_latency_s - self._exposure(self._last_frame_t)[0]) / period
-            )
-            self._mask_due_t = self._last_frame_t + max(k, 1) * period
-            end = self._exposure(self._mask_due_t)[1]
+            end = self._exposure(self._frame_t(m))[1]
             self._on_at_s = max(end, now + s.laser_min_switch_s)
-            self._next_s = now + s.mask_interval_s
         if self._on_at_s is not None and now + 1e-9 >= self._on_at_s:
             self._on_at_s = None
             self._request(True, now)
 
     def _take(self, f: Frame, s: CaptureSettings, out: list[Output]) -> None:
-        """Label one delivered frame and use it: a mask is kept, a base becomes a job."""
-        if self._last_frame_t is None or f.t_s > self._last_frame_t:
+        """Label one delivered frame and use it: a mask completes the waiting bases' jobs, a
+        base waits for the next mask (or goes at once without ``mask_bracketing``)."""
+        if self._last_frame_t is None:
+            self._last_frame_t, self._k_last = f.t_s, 0
+            self._mask_phase = 1 % s.mask_every_frames
+        elif f.t_s > self._last_frame_t:
+            self._k_last += max(1, round((f.t_s - self._last_frame_t) / s.frame_period_s))
             self._last_frame_t = f.t_s
-        due = self._mask_due_t
-        if due is not None and f.t_s > due + 0.5 * s.frame_period_s:
-            # the planned mask never came (dropped): try again two frames on (not while the
-            # replies are in doubt: then at the usual interval, the laser is not hammered)
-            self._mask_due_t = None
-            if self._trusted:
-                retry = f.t_s + max(s.laser_min_switch_s, 2 * s.frame_period_s)
-                self._next_s = min(self._next_s, retry)
         light = self._light_at(*self._exposure(f.t_s)) if self._trusted else None
         if light is None:
             self.ignored_frames += 1
             return
         if not light:
-            self._mask = f
             self.masks_taken += 1
-            if due is not None and abs(f.t_s - due) < 0.5 * s.frame_period_s:
-                self._mask_due_t = None
+            self._flush_waiting(f.t_s, s, out, None, f)
+            self._mask = f
             return
         mask = self._mask
-        if mask is None or not 0.0 < f.t_s - mask.t_s <= s.max_mask_age_s:
-            self.ignored_frames += 1
+        if mask is not None and f.t_s - mask.t_s > s.max_mask_age_s:
+            mask = None
+        if not s.mask_bracketing:
+            if mask is None:
+                self.ignored_frames += 1
+            else:
+                self._emit(f, (mask,), out)
             return
+        self._waiting.append((f, mask))
+
+    def _flush_waiting(
+        self,
+        now: float,
+        s: CaptureSettings,
+        out: list[Output],
+        t_latest: float | None,
+        next_mask: Frame | None = None,
+    ) -> None:
+        """Emit the bases waiting for a mask: bracketed by ``next_mask``, or — once a frame
+        after the mask they waited for has come (``t_latest``) — with the earlier mask alone."""
+        keep: list[tuple[Frame, Frame | None]] = []
+        patience = (s.mask_every_frames + 0.5) * s.frame_period_s
+        for base, prev in self._waiting:
+            masks = tuple(
+                m
+                for m in (prev, next_mask)
+                if m is not None and abs(m.t_s - base.t_s) <= s.max_mask_age_s
+            )
+            if next_mask is not None or (t_latest is not None and t_latest - base.t_s > patience):
+                if masks:
+                    self._emit(base, masks, out)
+                else:
+                    self.ignored_frames += 1
+            else:
+                keep.append((base, prev))
+        self._waiting = keep
+
+    def _emit(self, base: Frame, masks: tuple[Frame, ...], out: list[Output]) -> None:
         self.cycles += 1
-        motion = self.motion_between(mask.t_s, f.t_s)
-        out.append(CaptureJob(f, (mask,), mask.t_s, (motion,)))
+        motions = tuple(self.motion_between(m.t_s, base.t_s) for m in masks)
+        out.append(CaptureJob(base, masks, masks[0].t_s, motions))
 
 
 def pipeline_arguments(config: Any) -> tuple[str, Any]:

@@ -42,7 +42,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omnid.core.motion_compensation import Motion, compensated_mask, floor_motion_affine
+from omnid.core.motion_compensation import (
+    Motion,
+    compensated_mask,
+    disk_mask,
+    floor_motion_affine,
+)
 from omnid.core.types import PointCloud, StereoCapture
 from omnid.errors import OmnidError
 
@@ -76,7 +81,8 @@ def job_capture(
     """The :class:`StereoCapture` perception subtracts for a job: each camera's masks moved to
     the base frame's pose by the chair's motion (the floor's image motion,
     :func:`~omnid.core.motion_compensation.floor_motion_affine`, for the calibrated ``rig``;
-    a motion of None, or no rig, leaves that mask as taken) and averaged."""
+    a motion of None, or no rig, leaves that mask as taken) and combined
+    (:func:`~omnid.core.motion_compensation.compensated_mask`)."""
     if not masks:
         raise ValueError("capture job without a mask frame")
     out = []
@@ -87,8 +93,22 @@ def job_capture(
             else floor_motion_affine(cam, m, rig_x_offset_mm, rig.floor_depth_mm)
             for m in motions
         ]
-        out.append(compensated_mask([pair[i] for pair in masks], affines))
+        disk = None if cam is None or all(a is None for a in affines) else _disk(cam)
+        out.append(compensated_mask([pair[i] for pair in masks], affines, disk))
     return StereoCapture(out[0], base[0], out[1], base[1], timestamp_s=t_s)
+
+
+_DISKS: dict[Any, NDArray[np.uint8]] = {}
+
+
+def _disk(cam: Any) -> NDArray[np.uint8]:
+    """The mirror disk mask of ``cam`` (computed once per camera)."""
+    disk = _DISKS.get(cam)
+    if disk is None:
+        if len(_DISKS) > 8:
+            _DISKS.clear()
+        disk = _DISKS[cam] = disk_mask(cam)
+    return disk
 
 
 def encode_job(
@@ -330,7 +350,11 @@ class PerceptionWorker:
         return await self._perceive(capture)
 
     async def perceive_job(
-        self, t_s: float, base: Pair, masks: Sequence[Pair], motions: Sequence[Motion | None]
+        self,
+        t_s: float,
+        base: Pair,
+        masks: Sequence[Pair],
+        motions: Sequence[Motion | None],
     ) -> PointCloud:
         """The cloud of a capture job (base pair, mask pairs, the chair's motion from each mask
         to the base): the child moves the masks to the base's pose and perceives."""

@@ -45,6 +45,7 @@ import logging
 import math
 import signal
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -145,7 +146,9 @@ class Daemon:
         )
         self._capture_wake = asyncio.Event()  # a laser report or a frame arrived
         self._frames_wanted = asyncio.Event()  # the cycle wants frames: the reader reads
-        self._job: Any = None  # the capture job the worker takes next (newest wins)
+        # the capture jobs the worker takes next, oldest first (a mask completes up to
+        # mask_every_frames − 1 at once; beyond that the oldest is dropped)
+        self._jobs: deque[Any] = deque()
         self._job_ready = asyncio.Event()
         self._camera_reset = False  # the cycle gave up on the camera: reopen it
         self._next_grid_s = time.monotonic()  # the control loop's next grid deadline
@@ -385,9 +388,10 @@ class Daemon:
                             self._perception_error(out.kind, out.message)
                             self._camera_reset |= out.kind == "camera"
                             continue
-                        if self._job is not None:
+                        self._jobs.append(out)
+                        while len(self._jobs) > max(1, cycle.settings.mask_every_frames - 1):
+                            self._jobs.popleft()
                             self.stats.jobs_superseded += 1
-                        self._job = out
                         self._job_ready.set()
                     self._apply_capture()
                     if cycle.laser_on != before:
@@ -459,11 +463,11 @@ class Daemon:
 
         p = self.config.perception
         while not self._stop.is_set():
-            await self._wait_any([self._job_ready], 1.0)
-            self._job_ready.clear()
-            job, self._job = self._job, None
-            if job is None:
+            if not self._jobs:
+                self._job_ready.clear()
+                await self._wait_any([self._job_ready], 1.0)
                 continue
+            job = self._jobs.popleft()
             try:
                 self.stats.note(self.stats.capture_s, time.monotonic() - job.started_s)
                 if job.masks:
@@ -474,7 +478,10 @@ class Daemon:
                 motions = tuple(motions) or (None,) * len(job.masks)
                 w0 = time.monotonic()
                 cloud = await self.worker.perceive_job(
-                    job.t_s, job.base.images, [m.images for m in job.masks], motions
+                    job.t_s,
+                    job.base.images,
+                    [m.images for m in job.masks],
+                    motions,
                 )
                 t_done = time.monotonic()
             except PerceptionFailed as exc:

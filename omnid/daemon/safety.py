@@ -93,9 +93,9 @@ class SafetySettings(Settings):
     unknown_distance_mm: float = setting(1000.0, 0.0, 10000.0)
     unknown_max_fraction: float = setting(0.3, 0.0, 1.0)
     unknown_speed_mm_s: float = setting(120.0, 10.0, 1000.0)
-    # perception older than this → no forward motion; the stream capture delivers a cloud every
-    # ~50 ms, so 0.3 s is several missed frames (the stationary policy needs its period + 0.2 s)
-    perception_timeout_s: float = setting(0.3, 0.05, 5.0)
+    # perception older than this → no forward motion; the stationary capture needs its period
+    # + ~0.2 s; with perception.capture: stream (a cloud every ~50 ms) 0.3 s is enough
+    perception_timeout_s: float = setting(1.5, 0.05, 5.0)
     log_interval_s: float = setting(2.0, 0.1, 600.0)  # one log line per reason at most this often
     # escape moves in the stop zone (see the module docstring); 0 speed disables them
     # |v| cap of an escape move (0: no escapes, main's rule)

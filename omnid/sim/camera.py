@@ -20,12 +20,12 @@ What is modelled, and why it matters for depth at the frame rate:
 Not modelled: motion blur within an exposure (at 240 mm/s and 8 ms: 0.2 px on the floor),
 rolling shutter, auto-exposure, specular highlights, moving shadows.
 
-Sensor noise, the dots' shapes, halos and ghosts come from :func:`omnid.sim.render.render_camera_pair`.
+The dots' shapes, halos and ghosts come from :func:`omnid.sim.render.laser_image` (the spot
+model of ``render.py``).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -37,19 +37,11 @@ from numpy.typing import NDArray
 
 from omnid.config import require
 from omnid.core.geometry import MirrorCamera, StereoRig
-from omnid.sim.render import (
-    OUTSIDE_DISK_LEVEL,
-    RenderOptions,
-    render_camera_pair,
-    surface_shading,
-)
+from omnid.sim.render import OUTSIDE_DISK_LEVEL, RenderOptions, hits_flux, laser_image
 from omnid.sim.world import LaserHits, RigMount, World
 
 Pose = tuple[float, float, float]
 Image = NDArray[np.uint8]
-
-#: Gray level the renderer is asked to draw the scene at; the world texture then replaces it.
-_RENDER_LEVEL = 60.0
 
 
 @dataclass(frozen=True)
@@ -62,6 +54,12 @@ class CameraModel:
     drop_rate: float = 0.0  # share of frame pairs lost
     phase_s: float | None = None  # frame clock phase; None: drawn from the seed
     texture: Literal["smooth", "tiles"] = "smooth"
+    # where the texture is fixed: "world" — on the floor, the drop-off bottoms and the boxes
+    # (their sides and tops move with a parallax the floor's motion compensation does not
+    # follow); "floor" — on the floor and drop-off bottoms only, boxes a uniform gray;
+    # "camera" — in the image (the scene does not move when the chair does: no motion residue,
+    # what render.py draws; the cheapest)
+    textured: Literal["world", "floor", "camera"] = "world"
     texture_level: float = 70.0  # mean gray of the scene
     texture_contrast: float = 25.0  # amplitude of the coarse texture (as render.py's scene)
     texture_detail: float = 6.0  # amplitude of the fine texture (grain ~ 3 floor px)
@@ -76,6 +74,11 @@ class CameraModel:
         require(self.readout_s >= self.exposure_s / 2, "readout_s", "must be ≥ exposure_s/2")
         require(0 <= self.drop_rate < 1, "drop_rate", "must be in [0, 1)")
         require(self.texture in ("smooth", "tiles"), "texture", "must be smooth or tiles")
+        require(
+            self.textured in ("world", "floor", "camera"),
+            "textured",
+            "must be world, floor or camera",
+        )
         require(1 <= self.grid_px <= 16, "grid_px", "must be in 1..16")
 
     @property
@@ -248,6 +251,7 @@ class SimCamera:
         self.texture = SceneTexture(model, extent_mm, seed + 15485863)
         self._rays = (_CameraRays(rig.cam1, model.grid_px), _CameraRays(rig.cam2, model.grid_px))
         self.set_world(world)
+        self._fixed_scene: list[NDArray[np.float32] | None] = [None, None]
         self._next_index = 0
         self.frames = 0
         self.dropped = 0
@@ -294,7 +298,17 @@ class SimCamera:
             self._next_index += 1
 
     def scene(self, cam_index: int, pose: Pose) -> NDArray[np.float32]:
-        """The gray scene camera ``cam_index`` (0, 1) sees at ``pose``, without laser or noise."""
+        """The gray scene camera ``cam_index`` (0, 1) sees at ``pose``, without laser or noise
+        (``textured: camera``: the same whatever the pose)."""
+        if self.model.textured == "camera":
+            fixed = self._fixed_scene[cam_index]
+            if fixed is None:
+                fixed = self._world_scene(cam_index, (0.0, 0.0, 0.0), "floor")
+                self._fixed_scene[cam_index] = fixed
+            return fixed.copy()
+        return self._world_scene(cam_index, pose, self.model.textured)
+
+    def _world_scene(self, cam_index: int, pose: Pose, textured: str) -> NDArray[np.float32]:
         rays = self._rays[cam_index]
         x, y, h = rays.world_hits(pose, self.mount, self._boxes, self._pits)
         g = rays.grid_shape
@@ -306,30 +320,36 @@ class SimCamera:
             return np.asarray(out, dtype=np.float32)
 
         gray = self.texture.sample_texels(full(u), full(v))
+        if textured == "floor":
+            on_box = (h > 1.0).astype(np.float32).reshape(g)  # above the floor: a box
+            box = cv2.resize(on_box, (cols, rows), interpolation=cv2.INTER_LINEAR) > 0.5
+            gray = np.where(box, np.float32(self.model.texture_level), gray)
         return np.where(rays.disk, gray, np.float32(OUTSIDE_DISK_LEVEL)).astype(np.float32)
 
     def render(self, frame: SimFrame, hits: LaserHits) -> tuple[Image, Image]:
         """The two images of ``frame``: the world scene at its pose, the laser dots each mirror
-        sees scaled by the frame's lit share, sensor noise."""
+        sees (:func:`omnid.sim.render.laser_image`: the spot model; :func:`~omnid.sim.render.hits_flux`:
+        the beams' power and, with ``spots.shading``, the surfaces' shading) scaled by the frame's lit share, and sensor noise (read noise plus
+        shot noise, ``RenderOptions.noise_sigma`` / ``shot_noise_gain``), rounded and clipped."""
         rng = np.random.default_rng(frame.seed)
-        opts = dataclasses.replace(
-            self.options, background_level=_RENDER_LEVEL, background_texture=0.0, flicker=0.0
-        )
+        opts = self.options
         out: list[Image] = []
+        flux_all = hits_flux(hits, self.rig, opts.spots) * frame.lit  # (N, 2)
         for i, (cam, vis) in enumerate(
             ((self.rig.cam1, hits.visible1), (self.rig.cam2, hits.visible2))
         ):
-            if frame.lit > 0:
-                rc = cam.project(hits.xyz[vis])
-                shade = surface_shading(
-                    hits.xyz[vis], hits.normal[vis], cam.y_mm, self.mount.height_mm
-                )
-                flux = frame.lit * hits.brightness[vis] * shade
+            signal = self.scene(i, frame.pose)
+            if frame.lit > 0 and np.any(vis):
+                xyz = hits.xyz[vis]
+                signal += laser_image(cam, cam.project(xyz), opts.spots, rng, flux_all[vis, i])
+            noise = np.empty(signal.shape, dtype=np.float32)
+            cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
+            cv2.randn(noise, 0.0, 1.0)  # type: ignore[call-overload]
+            if opts.shot_noise_gain > 0:
+                var = opts.noise_sigma**2 + opts.shot_noise_gain * np.maximum(signal, 0.0)
+                noise *= np.sqrt(var).astype(np.float32)
             else:
-                rc, flux = np.zeros((0, 2)), np.zeros(0)
-            _, base = render_camera_pair(cam, rc, opts, rng, flux=flux)
-            img = base.astype(np.float32) + (self.scene(i, frame.pose) - np.float32(_RENDER_LEVEL))
-            disk = self._rays[i].disk
-            img = np.where(disk, img, base.astype(np.float32))
-            out.append(np.asarray(np.clip(np.rint(img), 0, 255), dtype=np.uint8))
+                noise *= np.float32(opts.noise_sigma)
+            signal += noise
+            out.append(np.asarray(cv2.convertScaleAbs(np.maximum(signal, 0.0)), dtype=np.uint8))
         return out[0], out[1]

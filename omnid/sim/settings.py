@@ -29,6 +29,9 @@ class SimSettings:
     tilt_period_s: float = 0.01
     perception_period_s: float | None = None  # None: the controller's perception.period_s (0.2)
     perception_latency_s: float = 0.1  # at least this long from capture to result
+    # the daemon's (one) perception worker is busy at least this long per job: a slower
+    # computer than this one; newer jobs supersede a waiting one (0: as measured)
+    worker_period_s: float = 0.0
     perception: PerceptionMode = "truth"
     control_unit: Literal["emulator", "direct"] = "emulator"
     truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
@@ -42,8 +45,11 @@ class SimSettings:
     # the cameras' timing and scene; None: the controller's camera.fps, exposures 80 % of its
     # camera.exposure_s (the longest the capture cycle plans for)
     camera: CameraModel | None = None
-    laser_delay_s: float = 0.02  # the control unit's relay: request → light switched, s
-    laser_jitter_s: float = 0.0  # ... plus a uniform 0 … this, per switch
+    # the control unit's laser switch: command → light, s, plus a uniform 0 … jitter per
+    # switch (the emulator's 20 ms relay; the stream capture at 30 frames/s wants a laser that
+    # switches between two exposures, e.g. 8 + 4 ms with perception.laser_switch_latency_s 18 ms)
+    laser_delay_s: float = 0.02
+    laser_jitter_s: float = 0.0
     laser_timeout_s: float | None = None  # None: the controller's perception.laser_timeout_s
     frame_timeout_s: float = 1.0  # without a controller config: the cycle's frame timeout
     record_seen: bool = True  # keep every non-floor point perception reported (off for soaks)
@@ -62,6 +68,7 @@ class SimSettings:
             v = getattr(self, name)
             require(v is None or v > 0, name, "must be positive")
         require(self.perception_latency_s >= 0, "perception_latency_s", "must be ≥ 0")
+        require(self.worker_period_s >= 0, "worker_period_s", "must be ≥ 0")
         require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
         require(self.tilt_noise_deg >= 0, "tilt_noise_deg", "must be ≥ 0")
         require(self.story_rest_s >= 0, "story_rest_s", "must be ≥ 0")

@@ -178,11 +178,17 @@ class Simulator:
         # the snapshot policy (one frame every period, laser as it is)
         self.drives_laser = hasattr(controller, "capturing") and hasattr(controller, "laser_on")
         self.capture_cycle = CaptureCycle(self._capture_settings())
-        self._read_since: float | None = None  # a flushed read asked for frames after this
+        self._read_since: float | None = None  # a triggered read (stationary) began then
+        self._triggered = 0
         self._poses: deque[tuple[float, float, float, float]] = deque(maxlen=64)
-        self._waiting: CaptureJob | None = None  # the job the (one) worker takes next
+        # the jobs the (one) worker takes next, oldest first: a mask completes up to
+        # mask_every_frames − 1 of them at once; an older one beyond that is dropped
+        self._waiting: deque[CaptureJob] = deque()
+        self._waiting_max = max(1, self.capture_cycle.settings.mask_every_frames - 1)
         self._worker_free_s = 0.0
         self.superseded = 0  # jobs replaced by a newer one before the worker took them
+        self.perceive_s = 0.0  # wall time of the last job's vision step (what the worker runs)
+        self._rendered: dict[int, tuple[NDArray[np.uint8], NDArray[np.uint8]]] = {}
         # Laser hits per pose: a chair standing still (refused, resting) sees the same dots, so
         # truth perception casts them once per pose; fresh noise is drawn on every use.
         self._hits_cache: dict[tuple[float, float, float], Any] = {}
@@ -314,12 +320,15 @@ class Simulator:
         return cloud
 
     def perceive_job(self, job: CaptureJob) -> PointCloud:
-        """The cloud of one capture job, as the daemon's worker would compute it: the frames
-        rendered as the simulated cameras took them (pose, laser light, noise), each mask moved
-        to the base's pose by the job's motion (``perception.motion_compensation``), then the
-        vision step. A job without a mask (``snapshot``) is subtracted against the same frame
-        rendered without laser."""
+        """The cloud of one capture job, as the daemon's worker would compute it, then the
+        vision step. ``stream``: the frames as the simulated cameras took them
+        (:class:`~omnid.sim.camera.SimCamera`: pose, laser light, the scene fixed to the world,
+        noise), each mask moved to the base's pose by the job's motion
+        (``perception.motion_compensation``). ``stationary``/``snapshot``: one render.py
+        capture at the base's pose (the scene fixed to the camera: no motion residue; a
+        ``snapshot`` job's mask is the same view without laser)."""
         base: SimFrame = job.base.source
+        self.perceive_s = 0.0
         if self.injector.active("perception_exception"):
             raise InjectedFault("injected fault: the vision pipeline raised")
         mode = self.settings.perception
@@ -330,31 +339,47 @@ class Simulator:
         from omnid.core.pipeline import perceive
         from omnid.daemon.perception_worker import job_capture
 
-        masks = [m.source for m in job.masks] or [
-            dataclasses.replace(base, lit=0.0, seed=base.seed + 1)
-        ]
-        motions = list(job.mask_motions) or [None]
-        cfg = getattr(self.controller, "config", None)
-        if cfg is not None and not cfg.perception.motion_compensation:
-            motions = [None] * len(masks)
-        offset = float(cfg.perception.rig_x_offset_mm) if cfg is not None else 0.0
-        capture = job_capture(
-            self._frame_images(base),
-            [self._frame_images(m) for m in masks],
-            motions,
-            self.calibration.rig,
-            offset,
-            job.t_s,
-        )
+        if self.capture_cycle.settings.policy != "stream":
+            # one mask/base capture of render.py: the scene fixed to the camera, the same in
+            # both (no motion residue), the mask drawn at the base's pose
+            mask = job.masks[0].source if job.masks else None
+            mask_pose = mask.pose if mask is not None else base.pose
+            mask_lit = mask is not None and mask.laser
+            capture = self.capture(mask_pose, mask_lit, base.pose, True)
+        else:
+            masks = [m.source for m in job.masks]
+            motions = list(job.mask_motions)
+            cfg = getattr(self.controller, "config", None)
+            if cfg is not None and not cfg.perception.motion_compensation:
+                motions = [None] * len(masks)
+            offset = float(cfg.perception.rig_x_offset_mm) if cfg is not None else 0.0
+            capture = job_capture(
+                self._frame_images(base),
+                [self._frame_images(m) for m in masks],
+                motions,
+                self.calibration.rig,
+                offset,
+                job.t_s,
+            )
         on_capture = getattr(self.controller, "on_capture", None)  # a recording core
         if on_capture is not None:
             on_capture(capture)
         method, settings = self._pipeline()
+        w0 = time.perf_counter()
         cloud: PointCloud = perceive(capture, self.calibration, method, settings)  # type: ignore[arg-type]
+        self.perceive_s = time.perf_counter() - w0
         return cloud
 
     def _frame_images(self, frame: SimFrame) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-        return self.camera.render(frame, self.laser_hits(frame.pose))
+        """The rendered images of ``frame`` (a mask serves several base frames: kept)."""
+        cache = self._rendered
+        images = cache.get(frame.index)
+        if images is None:
+            images = self.camera.render(frame, self.laser_hits(frame.pose))
+            if len(cache) >= 8:
+                cache.pop(next(iter(cache)))
+            cache[frame.index] = images
+        return images
 
     def perceive_now(self) -> PointCloud:
         """The point cloud the daemon would get from a capture at the current pose (laser as
@@ -431,9 +456,9 @@ class Simulator:
         traj = np.full((n_ticks // k_rec + 2, 4), np.nan)
         speeds = np.full((n_ticks + 1, 3), np.nan)
         # control steps: the 50 Hz grid plus the extra steps a laser switch runs at once (as
-        # the daemon's control loop does), at most two per mask or cycle
+        # the daemon's control loop does): two per mask (or cycle); the records grow if needed
         cs = self.capture_cycle.settings
-        gap = min(cs.mask_interval_s if cs.policy == "stream" else cs.period_s, cs.period_s)
+        gap = cs.mask_every_frames * cs.frame_period_s if cs.policy == "stream" else cs.period_s
         n_steps = n_ticks // k_ctrl + 1 + 2 * math.ceil(duration_s / gap) + 4
         cmds = np.full((n_steps, 5), np.nan)
         steps = np.full((n_steps, 7), np.nan)
@@ -452,17 +477,17 @@ class Simulator:
         last_progress = -math.inf
 
         def finish(job: CaptureJob) -> None:
-            """The worker takes ``job`` now: its wall time is charged as virtual time."""
-            w0 = time.perf_counter()
+            """The worker takes ``job`` now: the vision step's wall time (not the rendering,
+            which stands for the cameras) is charged as virtual time."""
             try:
                 cloud = self.perceive_job(job)
             except Exception as exc:  # as the daemon's perception loop: log, no result
                 errors.append((now, f"{type(exc).__name__}: {exc}"))
                 log.warning("perception cycle failed at t=%.2f s: %s", now, exc)
                 return
-            took = time.perf_counter() - w0
+            took = self.perceive_s
             t_perc.append(took)
-            self._worker_free_s = now + took
+            self._worker_free_s = now + max(took, s.worker_period_s)
             at = max(now + took, job.t_s + s.perception_latency_s)
             pending.append((at, job.t_s, cloud, job.base.source.pose))
             pending.sort(key=lambda p: p[0])
@@ -470,6 +495,32 @@ class Simulator:
         def failed(failure: CaptureFailure) -> None:
             errors.append((now, failure.message))
             log.warning("perception cycle failed at t=%.2f s: %s", now, failure.message)
+
+        def control(t: float) -> None:
+            """One control cycle at ``t``: step, record, exchange with the control unit."""
+            nonlocal cmds, steps, n_cmd, ctrl_n, ctrl_sum, ctrl_max, last_refusal
+            if n_cmd == len(cmds):  # more extra cycles than foreseen: grow the records
+                cmds = np.vstack([cmds, np.full_like(cmds, np.nan)])
+                steps = np.vstack([steps, np.full_like(steps, np.nan)])
+            w0 = time.perf_counter()
+            command = ctl.step(t)
+            took_ctrl = time.perf_counter() - w0
+            ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
+            ctrl_max = max(ctrl_max, took_ctrl)
+            last_refusal = self._note_decision(t, refusals, last_refusal)
+            steps[n_cmd] = (t, self._reason_mask(reason_bits), *self.chair.pose, *self._speed())
+            status = self.control_unit.exchange(command, t)
+            if status is not None:
+                ctl.on_status(status)
+                self.capture_cycle.on_status(status)
+            cmds[n_cmd] = (
+                t,
+                float(command.left_duty),
+                float(command.right_duty),
+                float(command.laser_on),
+                float(command.enable),
+            )
+            n_cmd += 1
 
         for k in range(n_ticks + 1):
             now = k * dt
@@ -506,35 +557,18 @@ class Simulator:
                 if s.record_seen and np.any(keep):
                     w = rig_to_world(cloud.xyz[keep], pose, self.mount)
                     seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
-            kick = self._perception_step(now, finish, failed)
-            if k % k_ctrl == 0 or kick:
-                if n_cmd == len(cmds):  # more extra steps than foreseen: grow the records
-                    cmds = np.vstack([cmds, np.full_like(cmds, np.nan)])
-                    steps = np.vstack([steps, np.full_like(steps, np.nan)])
-                w0 = time.perf_counter()
-                command = ctl.step(now)
-                took_ctrl = time.perf_counter() - w0
-                ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
-                ctrl_max = max(ctrl_max, took_ctrl)
-                last_refusal = self._note_decision(now, refusals, last_refusal)
-                steps[n_cmd] = (
-                    now,
-                    self._reason_mask(reason_bits),
-                    *self.chair.pose,
-                    *self._speed(),
-                )
-                status = self.control_unit.exchange(command, now)
-                if status is not None:
-                    ctl.on_status(status)
-                    self.capture_cycle.on_laser_report(bool(status.laser_on), status.timestamp_s)
-                cmds[n_cmd] = (
-                    now,
-                    float(command.left_duty),
-                    float(command.right_duty),
-                    float(command.laser_on),
-                    float(command.enable),
-                )
-                n_cmd += 1
+            if self._perception_step(now, finish, failed) or k % k_ctrl == 0:
+                control(now)
+            # a laser switch falls due between two ticks: asked at its time, and put on the wire
+            # at once by an extra control cycle (as the daemon does), not at the next tick
+            t_evt = now
+            for _ in range(8):
+                t_next = self.capture_cycle.next_poll_s
+                if not t_evt < t_next < now + dt - 1e-9:
+                    break
+                t_evt = t_next
+                if self._perception_poll(t_evt, failed):
+                    control(t_evt)
             speeds[n_speed] = (now, self.chair.left_speed_mm_s, self.chair.right_speed_mm_s)
             n_speed += 1
             if k % k_rec == 0:
@@ -577,6 +611,12 @@ class Simulator:
             "watchdog_trips": float(self.control_unit.watchdog_trips),
             "bytes_link": float(isinstance(self.control_unit, EmulatedControlUnit)),
             "tilt_bytes_link": float(isinstance(self.tilt, EmulatedTiltSensor)),
+            "clouds_per_s": len(t_perc) / self.now_s if self.now_s > 0 else 0.0,
+            "frames": float(self.camera.frames),
+            "frames_dropped": float(self.camera.dropped),
+            "masks": float(self.capture_cycle.masks_taken),
+            "jobs_superseded": float(self.superseded),
+            "frames_unused": float(self.capture_cycle.ignored_frames),
         }
         return SimResult(
             duration_s=self.now_s,
@@ -647,6 +687,35 @@ class Simulator:
         cu = self.control_unit
         return lit_share(cu.laser_switches, t0_s, t1_s, bool(cu.laser_on))
 
+    def _poll(self, now: float, failed: Callable[[CaptureFailure], None]) -> None:
+        for out in self.capture_cycle.poll(now):
+            if isinstance(out, CaptureFailure):
+                failed(out)
+            else:
+                self._queue(out)
+
+    def _queue(self, job: CaptureJob) -> None:
+        self._waiting.append(job)
+        while len(self._waiting) > self._waiting_max:
+            self._waiting.popleft()
+            self.superseded += 1
+
+    def _perception_poll(self, t: float, failed: Callable[[CaptureFailure], None]) -> bool:
+        """The capture cycle polled between ticks (its laser requests fall due): True when its
+        laser request changed."""
+        cycle = self.capture_cycle
+        before = cycle.laser_on
+        for out in cycle.poll(t):
+            if isinstance(out, CaptureFailure):
+                failed(out)
+            else:
+                self._queue(out)
+        if not self.drives_laser:
+            return False
+        self.controller.laser_on = cycle.laser_on
+        self.controller.capturing = cycle.capturing
+        return cycle.laser_on != before
+
     def _perception_step(
         self,
         now: float,
@@ -656,44 +725,44 @@ class Simulator:
         """One tick of the daemon's capture cycle against the simulated cameras; True when the
         cycle changed its laser request (the daemon then runs a control cycle at once).
 
-        The cameras free-run (:class:`omnid.sim.camera.SimCamera`): every frame delivered by
-        now goes to the cycle (``stream``), or — for a cycle that waits for one frame — the
-        first one delivered after the read began, exposed wholly after it when the cycle asks
-        for a flush (``stationary``: as a flushed V4L2 queue). With the cameras stopped no frame
-        comes. The one worker takes the newest job when it is free (a job it has not started is
-        replaced by a newer one, as the daemon's mailbox does)."""
+        ``stream``: the cameras free-run (:class:`omnid.sim.camera.SimCamera`) and every frame
+        delivered by now goes to the cycle. ``stationary``/``snapshot``: a triggered camera —
+        a read that must follow a laser switch (the cycle's ``flush_needed``) is exposed when
+        asked and delivered ``1/fps`` later, any other read returns at once; the frame shows
+        the pose and the laser as switched when it is delivered. With the cameras stopped no
+        frame comes. The one worker takes the queued jobs in order when it is free."""
         cycle = self.capture_cycle
         self._poses.append((now, *self.chair.pose))
-        if self.injector.active("camera_stopped"):
-            self.camera.skip_until(now)
-            frames: list[SimFrame] = []
-        else:
-            frames = self.camera.delivered_until(now, self._pose_at, self._lit_share)
-        stream = cycle.settings.policy == "stream"
-        half = 0.5 * self.camera.model.exposure_s
-        for f in frames:
-            if not stream:
-                if not cycle.wants_frame() or self._read_since is None:
-                    continue
-                if cycle.flush_needed and f.t_s - half < self._read_since:
-                    continue
-            cycle.on_frame(Frame(f.t_s, None, f))
+        stopped = self.injector.active("camera_stopped")
         before = cycle.laser_on
-        for out in cycle.poll(now):
-            if isinstance(out, CaptureFailure):
-                failed(out)
-                continue
-            if self._waiting is not None:
-                self.superseded += 1
-            self._waiting = out
-        if self._waiting is not None and now + 1e-9 >= self._worker_free_s:
-            job, self._waiting = self._waiting, None
-            finish(job)
-        if not stream:
-            if not cycle.wants_frame():
-                self._read_since = None
-            elif self._read_since is None:
+        if cycle.settings.policy == "stream":
+            if stopped:
+                self.camera.skip_until(now)
+            else:
+                for f in self.camera.delivered_until(now, self._pose_at, self._lit_share):
+                    cycle.on_frame(Frame(f.t_s, None, f))
+            self._poll(now, failed)
+        else:
+            for _ in range(4):  # an immediate read is delivered in the same tick
+                if not cycle.wants_frame():
+                    self._read_since = None
+                elif self._read_since is not None and not stopped:
+                    wait = self.camera.model.period_s if cycle.flush_needed else 0.0
+                    if now + 1e-9 >= self._read_since + wait:
+                        self._read_since = None
+                        on = bool(self.control_unit.laser_on)
+                        self._triggered += 1
+                        # (rendered by capture(), which draws its own seed)
+                        f = SimFrame(-self._triggered, now, self.chair.pose, float(on), 0)
+                        cycle.on_frame(Frame(now, None, f))
+                self._poll(now, failed)
+                if not cycle.wants_frame() or self._read_since is not None:
+                    break
                 self._read_since = now
+                if cycle.flush_needed:
+                    break
+        while self._waiting and now + 1e-9 >= self._worker_free_s:
+            finish(self._waiting.popleft())
         if self.drives_laser:
             self.controller.laser_on = cycle.laser_on
             self.controller.capturing = cycle.capturing
