@@ -115,13 +115,11 @@ def main() -> None:
         step_cost(a.minutes)
         return
 
-    from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
-    from omnid.core.laser import DotPattern
     from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
     from omnid.devices.emulators.gs311 import Gs311Emulator
     from omnid.sim.frame_server import FrameServer
-    from omnid.sim.render import render_capture
+    from omnid.sim.installation import calibrate_installed, installation_captures
 
     class TimedUnit(ControlUnitEmulator):
         """Records when the first command with a non-zero duty arrives after ``arm()``."""
@@ -139,9 +137,9 @@ def main() -> None:
 
     tmp = Path(tempfile.mkdtemp(prefix="omnid-bench-"))
     rig = StereoRig.nominal(floor_depth_mm=1100.0)
-    cap = render_capture(rig, DotPattern().on_plane(1100.0), seed=1)
+    cap = installation_captures(rig, seed=1)[0]
     calib_path = tmp / "calib.yaml"
-    calibrate_from_capture(cap, 1100.0, rig.baseline_mm).save(calib_path)
+    calibrate_installed(rig, seed=1).save(calib_path)
     cu = TimedUnit(MotorPlant())
     gs = Gs311Emulator([(0.0, 0.0, 0.0)], noise_deg=0.2)
     frames = tmp / "frames.sock"

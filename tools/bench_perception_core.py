@@ -66,14 +66,37 @@ def scene_xyz(rig: StereoRig, pattern: DotPattern) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=50)
+    ap.add_argument(
+        "--laser",
+        choices=["physical", "ideal"],
+        default="physical",
+        help="physical: a dense non-ideal projector (~850 dots); ideal: the old regular slope "
+        "lattice from the frame origin, DotPattern(30, 34, 0.07) (the degenerate case)",
+    )
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     rig = StereoRig.nominal()
-    pattern = DotPattern(rows=30, cols=34, step_slope=0.07)
     opts = RenderOptions.realistic()
-    floor = render_capture(rig, pattern.on_plane(rig.floor_depth_mm), opts, seed=99)
-    calib = calibrate_from_capture(floor, rig.floor_depth_mm, rig.baseline_mm)
-    xyz = scene_xyz(rig, pattern)
+    if args.laser == "ideal":
+        pattern = DotPattern(rows=30, cols=34, step_slope=0.07)
+        xyz = scene_xyz(rig, pattern)
+        laser: object = pattern
+    else:
+        from omnid.sim.laser import LaserProjector
+        from omnid.sim.world import Box, RigMount, World, cast_laser
+
+        laser = LaserProjector(pitch_u=0.04, pitch_v=0.045, orders_u=(-16, 16), orders_v=(-22, 22))
+        m = RigMount(height_mm=rig.floor_depth_mm)
+        box = Box(m.x_offset_mm + 800, m.x_offset_mm + 1300, -400.0, 400.0, 300.0)
+        hits = cast_laser(World((box,)), (0.0, 0.0, 0.0), m, laser, rig)
+        xyz = hits.xyz[hits.visible1 | hits.visible2]
+    try:
+        from omnid.sim.installation import calibrate_installed
+    except ImportError:  # an older checkout: the floor alone
+        floor = render_capture(rig, laser.on_plane(rig.floor_depth_mm), opts, seed=99)  # type: ignore[attr-defined]
+        calib = calibrate_from_capture(floor, rig.floor_depth_mm, rig.baseline_mm)
+    else:
+        calib = calibrate_installed(rig, laser, seed=99, options=opts)
     cap = render_capture(rig, xyz, opts, seed=3)
 
     print(

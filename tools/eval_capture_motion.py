@@ -78,7 +78,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--grout-gray", type=float, default=35.0, help="grout darker by, gray")
     a = ap.parse_args()
-    from omnid.core.calibration import calibrate_from_capture
+    from omnid.sim.installation import calibrate_installed
     from omnid.core.geometry import StereoRig
     from omnid.core.laser import DotPattern
     from omnid.core.pipeline import perceive
@@ -86,7 +86,7 @@ def main() -> None:
 
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
     pattern = DotPattern()
-    calib = calibrate_from_capture(capture_at(rig, pattern, 0.0, False, 0), FLOOR_MM, 200.0)
+    calib = calibrate_installed(rig, pattern, seed=0)
     mm_per_px = FLOOR_MM / rig.cam1.f_over_k_px
     print(
         f"mask → base gap {a.gap_s * 1e3:.0f} ms; floor {mm_per_px:.1f} mm/px; {a.seeds} seeds; "

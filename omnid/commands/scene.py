@@ -2,7 +2,8 @@
 without hardware.
 
 Writes ``floor_mask1.png … floor_base2.png`` (the empty floor at the rig's depth, for
-``omnid calibrate``), ``mask1.png … base2.png`` of the named scene of :mod:`omnid.sim.scenes`
+``omnid calibrate``), ``extra_box/`` and ``extra_wall/`` (the installer's extra captures, for
+``omnid calibrate --extra``), ``mask1.png … base2.png`` of the named scene of :mod:`omnid.sim.scenes`
 (for ``omnid perceive``) and ``truth.json`` (the rig that drew them and every laser dot: its
 rig-frame position, class, which mirror sees it and its ideal image positions). ``--list``
 prints the scenes.
@@ -71,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
 
     from omnid.core.geometry import StereoRig
     from omnid.core.types import PointClass
-    from omnid.experiments.scenes import floor_capture, render_hits, scene_hits
+    from omnid.experiments.scenes import render_hits, scene_hits
     from omnid.io_images import write_bytes_atomic, write_png
     from omnid.sim.render import RenderOptions
     from omnid.sim.rigs import misaligned_rig
@@ -84,7 +85,14 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"{out}: cannot create the folder ({exc.strerror or exc})") from exc
-    floor = floor_capture(rig, args.seed, options)
+    from omnid.sim.installation import installation_captures, write_capture
+
+    floor, extras = installation_captures(rig, seed=args.seed, options=options)
+    try:
+        for name, extra in extras.items():
+            write_capture(extra, out / f"extra_{name}")
+    except OSError as exc:
+        raise InputError(f"{out}: cannot write the extra captures ({exc})") from exc
     hits = scene_hits(scene, rig)
     cap = render_hits(rig, hits, args.seed + 1, options)
     for prefix, capture in (("floor_", floor), ("", cap)):
@@ -123,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     }
     write_bytes_atomic(out / "truth.json", (json.dumps(truth, indent=1) + "\n").encode())
     print(
-        f"wrote {out}/floor_{{mask,base}}{{1,2}}.png, {out}/{{mask,base}}{{1,2}}.png and "
+        f"wrote {out}/floor_{{mask,base}}{{1,2}}.png, {out}/extra_{{box,wall}}/ (for "
+        f"`omnid calibrate --extra`), {out}/{{mask,base}}{{1,2}}.png and "
         f"{out}/truth.json: {scene.description}, {int(hits.visible.sum())} dots seen by both "
         f"cameras, floor {H:g} mm below the mirrors"
     )

@@ -35,6 +35,7 @@ import numpy as np
 
 from omnid.core.freespace import FreeSpaceMap
 from omnid.core.occupancy import OccupancyGrid
+from omnid.core.pipeline import HealthSettings
 from omnid.core.types import PointCloud
 from omnid.daemon.config import OmnidConfig
 from omnid.daemon.motion import MotionController, Odometry
@@ -57,6 +58,10 @@ STOPPING_FAULTS = (
     FAULT_WATCHDOG | FAULT_OVERCURRENT_LEFT | FAULT_OVERCURRENT_RIGHT | FAULT_UNDERVOLTAGE
 )
 
+
+#: A capture whose dots fit the calibration less than this (share on a calibrated laser beam,
+#: ``PointCloud.calibration_fit``) means the rig was knocked: the pipeline's own threshold.
+_MIN_CALIBRATION_FIT = HealthSettings().min_explained
 
 class StatusSample(Protocol):
     """What the core reads of ``omnid.devices.control_unit.ControlUnitStatus``."""
@@ -143,6 +148,8 @@ class ControlCore:
         self.halt = False  # shutting down: stop at the emergency rate whatever the rider asks
         self.status: StatusSample | None = None
         self.perception_time_s: float | None = None
+        # the last capture did not fit the calibration (the rig was knocked): no forward motion
+        self.calibration_lost = False
         self.last_report: CycleReport | None = None
         self._last_step_s: float | None = None
         self._poses: deque[tuple[float, float, float, float]] = deque()
@@ -198,6 +205,21 @@ class ControlCore:
     def on_perception(self, cloud: PointCloud, capture_time_s: float) -> None:
         """A perception result for frames taken at ``capture_time_s``: into the map, compensated
         for the motion since then."""
+        fit = cloud.calibration_fit
+        if math.isfinite(fit) and fit < _MIN_CALIBRATION_FIT:
+            # garbage in: keep it out of the map, and refuse forward motion until a capture
+            # fits again (omnid.core.pipeline.CalibrationHealth)
+            if not self.calibration_lost:
+                log.error(
+                    "calibration_lost: only %.0f %% of the dots lie on a calibrated laser beam: "
+                    "the rig has moved since calibration; forward motion refused (recalibrate)",
+                    100 * fit,
+                )
+            self.calibration_lost = True
+            return
+        if self.calibration_lost and math.isfinite(fit):
+            log.warning("calibration_lost cleared: %.0f %% of the dots fit again", 100 * fit)
+            self.calibration_lost = False
         then = self._pose_at(capture_time_s)
         if then is not None and self._poses:
             _, x1, y1, th1 = self._poses[-1]
@@ -299,6 +321,9 @@ class ControlCore:
         if self.capturing and cfg.perception.capture_policy == "limit":
             cap = cfg.perception.capture_speed_mm_s
             v_req = min(max(v_req, -cap), cap)
+        if self.calibration_lost and v_req > 0:
+            v_req = 0.0
+            reasons.append(Reason.CALIBRATION_LOST)
         age = None if self.perception_time_s is None else now_s - self.perception_time_s
         decision = self.safety.check(self.grid, v_req, w_req, age, now_s)
         reasons.extend(decision.reasons)

@@ -66,6 +66,7 @@ class Reason(Enum):
     ESCAPE = "escape_creep"  # in the stop zone, but the move opens the gap: creep speed
     UNKNOWN_AHEAD = "unknown_ahead"
     PERCEPTION_STALE = "perception_stale"
+    CALIBRATION_LOST = "calibration_lost"  # the captures no longer fit the calibration
     RIDER_STOP = "rider_stop"
     INPUT_STALE = "input_stale"
     STATUS_STALE = "status_stale"

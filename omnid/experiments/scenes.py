@@ -3,7 +3,7 @@
 Each scene of :mod:`omnid.sim.scenes` is ray-cast (:func:`omnid.sim.world.cast_laser`) and
 rendered with cameras deliberately misaligned (mirror centres a few px off, f/K differing by a
 few %, rotations of 1.5° and −1°). The rig is calibrated on the floor capture alone
-(:func:`calibrate_from_capture`), then a scene is perceived with ``best`` or ``thesis`` (each
+and the installer's extra captures (:func:`calibrate_on_floor`), then a scene is perceived with ``best`` or ``thesis`` (each
 with its own detector, matcher and triangulation) and scored against the ray-cast truth:
 
     matched   correct matches / dots visible in both cameras (target ≥ 95 %)
@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from omnid.core.calibration import Calibration, calibrate_from_capture
+from omnid.core.calibration import Calibration
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
+from omnid.sim.laser import LaserProjector
 from omnid.sim.render import RenderOptions, render_camera_pair
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.scenes import Scene, get_scene
@@ -39,7 +39,7 @@ METHODS: tuple[str, ...] = ("best", "thesis")
 
 def scene_hits(scene: Scene, rig: StereoRig) -> LaserHits:
     """Where the laser dots of ``scene`` fall, and which mirror sees each."""
-    return cast_laser(scene.world, scene.pose, scene.mount, DotPattern(), rig)
+    return cast_laser(scene.world, scene.pose, scene.mount, LaserProjector(), rig)
 
 
 def render_hits(
@@ -55,16 +55,18 @@ def render_hits(
 
 def floor_capture(rig: StereoRig, seed: int, options: RenderOptions | None = None) -> StereoCapture:
     """The empty floor at the rig's floor depth, as ``omnid calibrate`` wants it."""
-    from omnid.sim.scenes import floor
-    from omnid.sim.world import RigMount
+    from omnid.sim.installation import installation_captures
 
-    scene = floor(RigMount(height_mm=rig.floor_depth_mm))
-    return render_hits(rig, scene_hits(scene, rig), seed, options)
+    return installation_captures(rig, LaserProjector(), seed=seed, options=options)[0]
 
 
 def calibrate_on_floor(rig: StereoRig, seed: int) -> Calibration:
-    """Calibration from a rendered capture of the empty floor (no other knowledge of ``rig``)."""
-    return calibrate_from_capture(floor_capture(rig, seed), rig.floor_depth_mm, rig.baseline_mm)
+    """Calibration as the installer makes it: the empty floor plus the extra captures (a box
+    and a wall ahead, :mod:`omnid.sim.installation`), no other knowledge of ``rig``."""
+    from omnid.sim.installation import calibrate_installed
+
+    cal: Calibration = calibrate_installed(rig, LaserProjector(), seed=seed)
+    return cal
 
 
 def assign_truth(

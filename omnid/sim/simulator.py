@@ -42,7 +42,6 @@ from numpy.typing import NDArray
 
 from omnid.config import require
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
 from omnid.devices.control_unit import ControlUnitStatus
 from omnid.devices.joystick import JoystickReading
@@ -50,10 +49,11 @@ from omnid.devices.tilt import TiltReading
 from omnid.errors import OmnidError
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
+from omnid.sim.laser import LaserProjector
 from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.story import Observation, ReactiveRider, StepRecord
-from omnid.sim.world import RigMount, cast_laser, rig_to_world
+from omnid.sim.world import Laser, RigMount, cast_laser, rig_to_world
 
 log = logging.getLogger(__name__)
 
@@ -545,7 +545,7 @@ class Simulator:
         keys: KeyScript | None = None,
         mount: RigMount | None = None,
         rig: StereoRig | None = None,
-        pattern: DotPattern | None = None,
+        pattern: Laser | None = None,
         progress: Callable[[float, Simulator], None] | None = None,
         faults: Sequence[Fault] = (),
         joystick: JoystickScript | None = None,
@@ -570,7 +570,8 @@ class Simulator:
                 misaligned_rig(h) if s.rig == "misaligned" else StereoRig.nominal(floor_depth_mm=h)
             )
         self.rig = rig
-        self.pattern = pattern or DotPattern()
+        # the world's laser (never handed to perception; calibration learns it)
+        self.pattern: Laser = pattern if pattern is not None else LaserProjector()
         self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
         self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
         if rider is not None:
@@ -601,15 +602,15 @@ class Simulator:
     # -- installation -------------------------------------------------------------------------
 
     def install(self) -> Any:
-        """Calibrate the rig as an installer would: one capture of an empty floor ``H`` below
-        the mirrors (laser on), ``calibrate_from_capture``; the result is what perception uses."""
-        from omnid.core.calibration import calibrate_from_capture
-        from omnid.sim.render import render_capture
+        """Calibrate the rig as an installer would: a capture of the empty floor ``H`` below the
+        mirrors and the extra captures of a box and a wall ahead (laser on),
+        :func:`omnid.sim.installation.calibrate_installed`; the result is what perception uses."""
+        from omnid.sim.installation import calibrate_installed
 
         w0 = time.perf_counter()
-        floor = self.pattern.on_plane(self.mount.height_mm)
-        cap = render_capture(self.rig, floor, seed=self.settings.seed + 7919)
-        self.calibration = calibrate_from_capture(cap, self.mount.height_mm, self.rig.baseline_mm)
+        self.calibration = calibrate_installed(
+            self.rig, self.pattern, self.mount, seed=self.settings.seed
+        )
         self.install_s = time.perf_counter() - w0
         return self.calibration
 
