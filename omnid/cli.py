@@ -15,6 +15,7 @@ import argparse
 import importlib
 import logging
 import pkgutil
+import re
 import sys
 from collections.abc import Sequence
 
@@ -43,7 +44,41 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         module = importlib.import_module(f"omnid.commands.{info.name}")
         module.register(subparsers)
+    _plain_help(parser)
     return parser
+
+
+_ROLE = re.compile(r":[a-z]+:`~?([^`<]*?)\s*(?:<[^`]*>)?`")
+
+
+def plain_text(text: str) -> str:
+    """reST markup of module docstrings as a terminal shows it: ````omnid run```` → omnid run,
+    ``:class:`~omnid.x.Name``` → Name, a literal-block ``Examples::`` → ``Examples:``."""
+
+    def role(m: re.Match[str]) -> str:
+        target = m.group(1)
+        return target.rsplit(".", 1)[-1] if "~" in m.group(0) else target
+
+    text = _ROLE.sub(role, text)
+    text = text.replace("``", "").replace("`", "")
+    return re.sub(r"(\w)::$", r"\1:", text, flags=re.M)
+
+
+def _plain_help(parser: argparse.ArgumentParser) -> None:
+    """Strip reST markup from every description and help text, subcommands included."""
+    if parser.description:
+        parser.description = plain_text(parser.description)
+    if parser.epilog:
+        parser.epilog = plain_text(parser.epilog)
+    for action in parser._actions:
+        if isinstance(action.help, str):
+            action.help = plain_text(action.help)
+        if isinstance(action, argparse._SubParsersAction):
+            for choice in action._choices_actions:
+                if isinstance(choice.help, str):
+                    choice.help = plain_text(choice.help)
+            for sub in action.choices.values():
+                _plain_help(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -68,10 +68,28 @@ def read_capture(
     return StereoCapture(images[0], images[1], images[2], images[3])
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+def current_umask() -> int:
+    """The process's file-creation mask (read from /proc, so it is not changed even briefly;
+    elsewhere the classic set-and-restore)."""
+    import os
+
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def write_bytes_atomic(path: str | Path, data: bytes, fsync: bool = False) -> None:
     """Write ``data`` to ``path`` atomically: a temporary file beside it, then a rename, so a
-    reader never sees half a file and a failed write leaves the old file alone. An unwritable
-    place raises :class:`InputError` naming ``path``."""
+    reader never sees half a file and a failed write leaves the old file alone. The file gets
+    the permissions a plain ``open(path, "w")`` would (0666 less the umask), not the temporary
+    file's 0600. ``fsync``: on disk before the rename. An unwritable place raises
+    :class:`InputError` naming ``path``, never the temporary file."""
     import os
     import tempfile
 
@@ -79,14 +97,18 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent or ".")
     except OSError as exc:
-        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from exc
+        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
     try:
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+            if fsync:
+                f.flush()
+                os.fsync(f.fileno())
         os.replace(tmp, p)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
-        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from exc
+        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
 
 
 def write_png(path: str | Path, image: NDArray[np.uint8]) -> None:

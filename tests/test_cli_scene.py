@@ -149,6 +149,75 @@ def test_scene_list_and_unknown_name(tmp_path: Path, capsys) -> None:
     assert "--out" in capsys.readouterr().err
 
 
+def test_scene_with_a_random_rig_laser_and_spots_and_extra_captures(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--rig/--laser/--spots random, --extra: truth.json describes what drew the images well
+    enough to render another capture of the same rig and laser, and to score perception."""
+    from omnid.sim import specs
+
+    out = tmp_path / "a"
+    argv = ["scene", "three_boxes", "--out", str(out), "--seed", "5"]
+    argv += ["--rig", "random", "--laser", "random", "--spots", "saturated"]
+    assert main([*argv, "--extra", "wall", "--extra", "vertical_750"]) == 0
+    truth = json.loads((out / "truth.json").read_text())
+    rig = specs.rig_from_spec(str(out / "truth.json"))
+    laser = specs.laser_from_spec(str(out / "truth.json"))
+    assert laser == specs.laser_from_spec("random", 5)  # the same draw for the same seed
+    assert rig == specs.rig_from_spec("random", 5)
+    assert truth["spots"]["kind"] == "saturated" and truth["spots"]["shading"] is True
+    rays = laser.rays()
+    for key in ("dots", "floor_dots"):
+        dots = truth[key]
+        assert [d["beam"] for d in dots] == list(range(len(rays)))
+        xyz = np.array([[d["x"], d["y"], d["z"]] for d in dots])
+        px = np.array([[d["r1"], d["c1"], d["r2"], d["c2"]] for d in dots], dtype=float)
+        np.testing.assert_allclose(px, rig.project(xyz), atol=1e-9)
+        # every dot lies on its beam from the laser's source
+        u = xyz - np.array(laser.source_mm)
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        np.testing.assert_allclose(u, rays.directions, atol=1e-9)
+    assert {d["class"] for d in truth["dots"]} >= {"floor", "obstacle"}
+    assert all(d["z"] == pytest.approx(1100.0) for d in truth["floor_dots"])
+    for k, name in ((1, "wall"), (2, "vertical_750")):
+        extra = json.loads((out / f"extra{k}" / "truth.json").read_text())
+        assert extra["scene"] == name and extra["laser"] == truth["laser"]
+        assert extra["off_floor_both"] > 20  # dots on something other than the floor
+        for n in CAPTURE:
+            img = cv2.imread(str(out / f"extra{k}" / f"{n}.png"), cv2.IMREAD_UNCHANGED)
+            assert img is not None and img.shape == (480, 640)
+    base = cv2.imread(str(out / "floor_base1.png"), cv2.IMREAD_UNCHANGED)
+    assert (base == 255).sum() > 100  # saturated spots
+    # Another capture of the same rig and laser, one field changed (in degrees).
+    again = tmp_path / "b"
+    argv = ["scene", "passage", "--out", str(again), "--rig", str(out / "truth.json")]
+    argv += ["--laser", str(out / "truth.json"), "--laser-param", "axis_tilt_deg=38"]
+    assert main(argv) == 0
+    other = json.loads((again / "truth.json").read_text())
+    assert other["rig"] == truth["rig"]
+    assert other["laser"]["axis_tilt_rad"] == pytest.approx(np.radians(38.0))
+    assert other["laser"]["source_mm"] == truth["laser"]["source_mm"]
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--laser", "hologram"], "laser 'hologram'"),
+        (["--laser-param", "pitch_u=-1"], "pitch_u"),
+        (["--laser-param", "colour=green"], "laser.colour: unknown key"),
+        (["--spots", "fuzzy"], "spots 'fuzzy'"),
+        (["--spot-param", "sigma_px=oops"], "spots.sigma_px"),
+        (["--rig", "bent"], "rig 'bent'"),
+        (["--extra", "no_such_scene"], "no_such_scene"),
+        (["--laser", "no/such/laser.json"], "cannot read"),
+    ],
+)
+def test_bad_scene_options_are_one_line(tmp_path: Path, capsys, args, words) -> None:
+    assert main(["scene", "floor", "--out", str(tmp_path / "x"), *args]) != 0
+    err = capsys.readouterr().err.strip()
+    assert words in err and len(err.splitlines()) == 1 and "Traceback" not in err
+
+
 def test_experiment_table74(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["experiment", "table74", "--planes", "vertical_1450"]) == 0
     out = capsys.readouterr().out

@@ -36,7 +36,9 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -104,21 +106,12 @@ def step_cost(minutes: float) -> None:
     print(f"  mean step cost ratio reference / closed-form: {ref / fast:.1f}x")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--presses", type=int, default=200)
-    ap.add_argument("--period-s", type=float, default=0.3, help="perception.period_s")
-    ap.add_argument("--step-cost", action="store_true", help="ControlCore.step cost only")
-    ap.add_argument("--minutes", type=float, default=3.0, help="soak length for --step-cost")
-    a = ap.parse_args()
-    if a.step_cost:
-        step_cost(a.minutes)
-        return
-
+def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
+    """The emulated chair for a daemon process: control-unit and GS311 emulators on ptys, a
+    rendered floor on a frame server's socket, a calibration, the daemon's config file."""
     from omnid.core.geometry import StereoRig
     from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
     from omnid.devices.emulators.gs311 import Gs311Emulator
-    from omnid.sim.frame_server import FrameServer
     from omnid.sim.installation import calibrate_installed, installation_captures
 
     class TimedUnit(ControlUnitEmulator):
@@ -158,6 +151,139 @@ def main() -> None:
         on = cu.laser_on
         return time.monotonic(), cap.base1 if on else cap.mask1, cap.base2 if on else cap.mask2
 
+    return types.SimpleNamespace(
+        tmp=tmp,
+        cu=cu,
+        gs=gs,
+        cap=cap,
+        frames=frames,
+        teleop=teleop,
+        stats_path=stats_path,
+        cfg=cfg,
+        provider=provider,
+    )
+
+
+def record_cost(a: argparse.Namespace) -> None:
+    """Control-loop lateness of ``omnid run`` with ``--record`` against the same daemon without
+    it, in alternating rounds of the same setup (the machine's load drifts between rounds, not
+    within a pair): perception running, a capture recorded every 2 s (5x the shipped rate),
+    the chair turning left and right on teleop keys so every topic carries data."""
+    from omnid.record.reader import read_recording
+    from omnid.sim.frame_server import FrameServer
+
+    b = bench_setup(a)
+    text = b.cfg.read_text() + "record:\n  capture_period_s: 2.0\n"
+    b.cfg.write_text(text)
+    late: dict[str, list[float]] = {"without": [], "with --record": []}
+    rows = []
+    stop = threading.Event()
+
+    def drive() -> None:  # keys every 0.3 s: left, right, stop, ...
+        k = 0
+        while not stop.is_set():
+            if b.teleop.exists():
+                try:
+                    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
+                        c.connect(str(b.teleop))
+                        c.settimeout(1.0)
+                        while not stop.is_set():
+                            c.sendall([b"left\n", b"right\n", b"stop\n"][k % 3])
+                            c.recv(64)
+                            k += 1
+                            stop.wait(0.3)
+                except OSError:
+                    pass
+            stop.wait(0.2)
+
+    with FrameServer(b.frames, b.provider):
+        for r in range(a.rounds):
+            for name in late:
+                extra = []
+                rec_path = b.tmp / f"rec-{r}.mcap"
+                if name != "without":
+                    extra = ["--record", str(rec_path)]
+                b.stats_path.unlink(missing_ok=True)
+                with open(b.tmp / f"daemon-{r}-{len(extra)}.log", "w") as err:
+                    proc = subprocess.Popen(
+                        [
+                            sys.executable,
+                            "-m",
+                            "omnid.cli",
+                            "run",
+                            "--config",
+                            str(b.cfg),
+                            "--stats-out",
+                            str(b.stats_path),
+                            *extra,
+                        ],
+                        stderr=err,
+                        stdout=subprocess.DEVNULL,
+                    )
+                    stop.clear()
+                    driver = threading.Thread(target=drive, daemon=True)
+                    driver.start()
+                    time.sleep(a.seconds)
+                    stop.set()
+                    proc.send_signal(signal.SIGTERM)
+                    proc.wait(timeout=30)
+                    driver.join(timeout=5)
+                st = json.loads(b.stats_path.read_text())
+                xs = st["lateness_s"][int(3.0 * 50) :]  # after start-up
+                late[name] += xs
+                note = ""
+                if extra:
+                    rec = read_recording([rec_path], topics={"/recorder"})
+                    last = rec.messages[-1].doc if rec.messages else {}
+                    size = rec_path.stat().st_size / 1e6
+                    note = (
+                        f"  recorded {last.get('written', 0)} messages, {size:.1f} MB, "
+                        f"dropped {last.get('dropped', 0)}"
+                    )
+                rows.append(
+                    f"  round {r + 1} {name:14s} p50 {pct(xs, 50):.2f} ms  p99 {pct(xs, 99):.2f} ms"
+                    f"  max {pct(xs, 100):.2f} ms  ({len(xs)} cycles, {st['skipped']} skipped)"
+                    + note
+                )
+                print(rows[-1], flush=True)
+    b.gs.close()
+    b.cu.close()
+    p0, p1 = pct(late["without"], 99), pct(late["with --record"], 99)
+    print(f"machine: {os.cpu_count()} cores; {a.rounds} rounds of {a.seconds:g} s each, 50 Hz")
+    for name, xs in late.items():
+        print(
+            f"  {name:14s} lateness p50 {pct(xs, 50):.2f} ms  p99 {pct(xs, 99):.2f} ms  "
+            f"max {pct(xs, 100):.2f} ms  ({len(xs)} cycles)"
+        )
+    print(f"  p99 with --record minus without: {p1 - p0:+.2f} ms (goal: within 0.5 ms)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--presses", type=int, default=200)
+    ap.add_argument("--period-s", type=float, default=0.3, help="perception.period_s")
+    ap.add_argument("--step-cost", action="store_true", help="ControlCore.step cost only")
+    ap.add_argument(
+        "--record-cost",
+        action="store_true",
+        help="control-loop lateness with and without --record (alternating rounds, same run)",
+    )
+    ap.add_argument("--rounds", type=int, default=3, help="rounds of each for --record-cost")
+    ap.add_argument("--seconds", type=float, default=30.0, help="seconds per --record-cost run")
+    ap.add_argument("--minutes", type=float, default=3.0, help="soak length for --step-cost")
+    a = ap.parse_args()
+    if a.step_cost:
+        step_cost(a.minutes)
+        return
+
+    from omnid.sim.frame_server import FrameServer
+
+    if a.record_cost:
+        record_cost(a)
+        return
+    b = bench_setup(a)
+    tmp, cu, gs, frames, teleop = b.tmp, b.cu, b.gs, b.frames, b.teleop
+    stats_path, cfg, provider = b.stats_path, b.cfg, b.provider
     wire: list[float] = []
     ack: list[float] = []
     with FrameServer(frames, provider):

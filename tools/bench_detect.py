@@ -41,8 +41,8 @@ import numpy as np  # noqa: E402
 
 from omnid.core.detect import DetectionParams, detect_dots, to_gray  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
-from omnid.core.laser import DotPattern  # noqa: E402
-from omnid.sim.render import RenderOptions, render_capture, visible_truth  # noqa: E402
+from omnid.sim.laser import ideal_lattice  # noqa: E402
+from omnid.sim.render import RenderOptions, SpotModel, render_capture, visible_truth  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EDGE_MARGIN_PX = 4.0
@@ -98,7 +98,7 @@ def trackpy_locate(sub: np.ndarray, minmass: float) -> np.ndarray:
 
 def scene() -> tuple[StereoRig, np.ndarray]:
     rig = StereoRig.nominal()
-    return rig, DotPattern(rows=30, cols=34, step_slope=0.07).on_plane(rig.floor_depth_mm)
+    return rig, ideal_lattice(30, 35, 0.07, 0.28).on_plane(rig.floor_depth_mm)
 
 
 def count_mode(which: str, n: int, before: str) -> int:
@@ -186,10 +186,8 @@ def main() -> int:
     old_render = load_module_at(args.before, "omnid/sim/render.py", "render_before")
     print(f"before = {args.before}" + ("" if old_detect else " (not found: skipped)"))
     scenes = {
-        "sensor (noise, shot, flicker)": RenderOptions.realistic(
-            halo_fraction=0.0, ghost_fraction=0.0
-        ),
-        "sensor, BGR": RenderOptions.realistic(halo_fraction=0.0, ghost_fraction=0.0, color=True),
+        "sensor (noise, shot, flicker)": RenderOptions.realistic(spots=SpotModel()),
+        "sensor, BGR": RenderOptions.realistic(spots=SpotModel(), color=True),
         "realistic (+ speckled halos, ghosts)": RenderOptions.realistic(),
     }
     reps_render = max(args.repeats // 3, 5)

@@ -78,14 +78,14 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--grout-gray", type=float, default=35.0, help="grout darker by, gray")
     a = ap.parse_args()
-    from omnid.sim.installation import calibrate_installed
     from omnid.core.geometry import StereoRig
-    from omnid.core.laser import DotPattern
     from omnid.core.pipeline import perceive
     from omnid.core.types import PointClass
+    from omnid.sim.installation import calibrate_installed
+    from omnid.sim.laser import LaserProjector
 
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    pattern = DotPattern()
+    pattern = LaserProjector()  # the simulator's physical laser
     calib = calibrate_installed(rig, pattern, seed=0)
     mm_per_px = FLOOR_MM / rig.cam1.f_over_k_px
     print(

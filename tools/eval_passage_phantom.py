@@ -17,14 +17,14 @@ import argparse
 
 import numpy as np
 
-from omnid.sim.installation import calibrate_installed
 from omnid.core.detect import detect_dots
 from omnid.core.matching import match_dots
 from omnid.core.triangulate import triangulate
 from omnid.sim.course import walls
+from omnid.sim.installation import calibrate_installed
 from omnid.sim.laser import LaserProjector
 from omnid.sim.render import RenderOptions, render_camera_pair
-from omnid.sim.simulator import misaligned_rig
+from omnid.sim.rigs import misaligned_rig
 from omnid.sim.world import Box, RigMount, World, cast_laser
 
 H = 1100.0
@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     args = ap.parse_args()
     rig = misaligned_rig(H)
-    pat = LaserProjector()
+    pat = LaserProjector()  # the simulator's physical laser
     calib = calibrate_installed(rig, pat, seed=0)
     world = World(
         boxes=(

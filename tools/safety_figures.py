@@ -28,9 +28,10 @@ from numpy.typing import NDArray
 
 from omnid.sim.chair import Chair
 from omnid.sim.course import WALL_MM, Course, walls
+from omnid.sim.results import clearance_mm, footprint_perimeter
 from omnid.sim.rider import JoystickScript, head_script, random_ride
 from omnid.sim.scenario import make_core
-from omnid.sim.simulator import Fault, SimResult, SimSettings, Simulator, _clearance
+from omnid.sim.simulator import Fault, SimResult, SimSettings, Simulator
 from omnid.sim.world import World
 
 STANDSTILL_MM_S = 2.0  # "wheels at zero": both slower than this (as the scenario suite)
@@ -67,12 +68,9 @@ def truth_clearance_mm(course: Course, poses: NDArray[np.float64]) -> NDArray[np
     ).reshape(-1, 4)
     chair = Chair(pose=(0.0, 0.0, 0.0))
     out = np.empty(len(poses))
-    t = np.linspace(0.0, 1.0, 8, endpoint=False)[:, None]
     for i, (x, y, th) in enumerate(poses):
         chair.x_mm, chair.y_mm, chair.theta_rad = float(x), float(y), float(th)
-        c = chair.footprint()
-        edge = np.vstack([c[j] + t * (c[(j + 1) % 4] - c[j]) for j in range(4)])
-        out[i] = _clearance(edge, rects)
+        out[i] = clearance_mm(footprint_perimeter(chair, per_side=8), rects)
     return out
 
 

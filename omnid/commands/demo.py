@@ -21,12 +21,19 @@ def register(subparsers: Any) -> None:
         help="drive the simulated chair through the built-in course and write a report",
         description=__doc__.split("\n")[0] if __doc__ else None,
     )
-    add_run_arguments(p, default_out="./omnid-demo")
     # at most: every step of the reactive story to its timeout; the run ends with the story
-    p.set_defaults(func=handle, duration_s=130.0)
+    add_run_arguments(
+        p,
+        default_out="./omnid-demo",
+        default_duration_s=130.0,
+        duration_help="simulated seconds at most; the run ends when the rider's story does, "
+        "usually after about 60",
+    )
+    p.set_defaults(func=handle)
 
 
 def handle(args: argparse.Namespace) -> int:
     from omnid.sim import scenario
 
+    args.duration_s = args.default_duration_s if args.duration_s is None else args.duration_s
     return scenario.run_and_report(args, None, title="omnid demo")

@@ -41,4 +41,26 @@ def handle(args: argparse.Namespace) -> int:
     )
     module.add_arguments(sub)
     sub_args = sub.parse_args(args.options)
-    return int(module.run(sub_args) or 0)
+    import contextlib
+    import os
+    import signal
+
+    def interrupted(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt  # the emulator's finally closes the pty and removes --link
+
+    # SIGTERM (kill, systemd, a bench script) and SIGHUP (terminal closed) end the emulator as
+    # Ctrl-C does, so no dangling --link symlink is left behind
+    previous = {s: signal.signal(s, interrupted) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        return int(module.run(sub_args) or 0)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        # a signal before the emulator's own cleanup was armed: its pty is gone with this
+        # process, so is the link to it (only ever a symlink, never a file)
+        link = getattr(sub_args, "link", None)
+        if link and os.path.islink(link):
+            with contextlib.suppress(OSError):
+                os.unlink(link)

@@ -80,6 +80,8 @@ def nearest_ahead_mm(cloud: PointCloud, label: int, half_width_mm: float) -> flo
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from omnid.core.calibration import Calibration
     from omnid.core.pipeline import PerceptionSettings, perceive_detailed
     from omnid.core.types import PointClass
@@ -92,6 +94,12 @@ def run(args: argparse.Namespace) -> int:
     capture = read_capture(
         args.mask1, args.base1, args.mask2, args.base2, calib.rig.cam1.image_shape
     )
+    for cam, mask, base in ((1, capture.mask1, capture.base1), (2, capture.mask2, capture.base2)):
+        if np.array_equal(mask, base) and mask.min() != mask.max():  # blank: no dots, said below
+            raise InputError(
+                f"--mask{cam} and --base{cam} are the same picture: the dots are found in base "
+                f"(laser on) minus mask (laser off), so give the two exposures of camera {cam}"
+            )
     result = perceive_detailed(
         capture, calib, args.method, PerceptionSettings(detection_method=args.detect)
     )
@@ -107,17 +115,28 @@ def run(args: argparse.Namespace) -> int:
 
         write_bytes_atomic(args.ply, ply_bytes(cloud))
     if args.png:
-        from omnid.core.export import render_topdown
+        from omnid.core.export import render_topdown, with_legend
         from omnid.core.freespace import FreeSpaceMap
 
         fmap = FreeSpaceMap()
         fmap.update(cloud, args.rig_x_offset_mm)
-        write_png(args.png, render_topdown(fmap, cloud, rig_x_offset_mm=args.rig_x_offset_mm))
+        top = render_topdown(fmap, cloud, rig_x_offset_mm=args.rig_x_offset_mm)
+        title = f"omnid perceive: {len(cloud)} points, forward up, chair's left on the left"
+        write_png(args.png, with_legend(top, title))
     counts = {c.label: int((cloud.classes == c).sum()) for c in PointClass}
     nearest = {
         c.label: nearest_ahead_mm(cloud, int(c), args.half_width_mm)
         for c in (PointClass.OBSTACLE, PointClass.DROPOFF)
     }
+    if len(result.dots1) == 0 or len(result.dots2) == 0:
+        import sys
+
+        print(
+            "perceive: no laser dots found in camera "
+            + " or ".join(str(i) for i, d in ((1, result.dots1), (2, result.dots2)) if len(d) == 0)
+            + ": is the laser on in the base pictures and off in the mask ones (not swapped)?",
+            file=sys.stderr,
+        )
     if args.json:
         doc = {
             "method": args.method,

@@ -35,7 +35,12 @@ def register(subparsers: Any) -> None:
         "--serve",
         metavar="SOCKET",
         help="real time for an external `omnid run`: a control-unit pty (printed) and camera "
-        "frames on this Unix socket (sim+unix://) until SIGTERM or --duration-s",
+        "frames on this Unix socket (sim+unix://) until SIGTERM/Ctrl-C (or --duration-s)",
+    )
+    p.add_argument(
+        "--link",
+        metavar="PATH",
+        help="with --serve: a stable symlink to the control unit's pty (control_unit.port)",
     )
     p.add_argument(
         "--floor-capture",
@@ -46,10 +51,21 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=handle)
 
 
-def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
+def add_run_arguments(
+    p: argparse.ArgumentParser,
+    default_out: str,
+    default_duration_s: float = 45.0,
+    duration_help: str = "simulated seconds",
+) -> None:
     """Options shared by ``simulate`` and ``demo``."""
     p.add_argument("--course", default="builtin", help="builtin (default), empty-room or box-ahead")
-    p.add_argument("--duration-s", type=float, default=45.0, help="simulated seconds (45)")
+    p.add_argument(
+        "--duration-s",
+        type=float,
+        default=None,
+        help=f"{duration_help} ({default_duration_s:g})",
+    )
+    p.set_defaults(default_duration_s=default_duration_s)
     p.add_argument(
         "--perception",
         choices=["truth", "pipeline", "off"],
@@ -61,6 +77,20 @@ def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (0)")
     p.add_argument("--out", default=default_out, help=f"report directory ({default_out})")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record the run as MCAP: what the daemon saw and decided, and the simulator's "
+        "truth on /sim/* (needs the 'record' extra)",
+    )
+    p.add_argument(
+        "--view",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="HOST:PORT",
+        help="serve the same topics live over the Foxglove WebSocket protocol (default "
+        "127.0.0.1:8765), the run paced to real time",
+    )
 
 
 def parse_drive(items: list[str]) -> list[tuple[float, float, float]]:
@@ -90,5 +120,6 @@ def handle(args: argparse.Namespace) -> int:
     if getattr(args, "floor_capture", None):
         scenario.write_floor_capture(args.floor_capture, args.seed)
     if args.serve:
-        return scenario.serve_real_time(args, controller)
+        return scenario.serve_real_time(args, controller)  # --duration-s None: until stopped
+    args.duration_s = args.default_duration_s if args.duration_s is None else args.duration_s
     return scenario.run_and_report(args, controller, title="omnid simulate")

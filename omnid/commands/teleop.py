@@ -32,13 +32,21 @@ def handler(args: argparse.Namespace) -> int:
     import asyncio
     import contextlib
     import os
+    import stat
     import sys
     import termios
     import tty
 
     from omnid.devices.teleop import run_client
+    from omnid.errors import InputError
 
     fd = sys.stdin.fileno()
+    mode = os.fstat(fd).st_mode
+    if not (os.isatty(fd) or stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)):
+        raise InputError(
+            "standard input is not a terminal (nor a pipe): run omnid teleop in a terminal "
+            "to drive with the arrow keys (or pipe the keys' bytes into it)"
+        )
     saved = None
     if os.isatty(fd):
         saved = termios.tcgetattr(fd)

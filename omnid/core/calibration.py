@@ -38,8 +38,6 @@ writes a temporary file and renames it, so a failure never leaves a half-written
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -192,19 +190,13 @@ class Calibration:
         }
 
     def save(self, path: str | Path) -> None:
-        """Write the calibration as YAML, atomically (temporary file in the same folder, renamed)."""
-        p = Path(path)
+        """Write the calibration as YAML, atomically (temporary file in the same folder, synced,
+        renamed; permissions as the umask says). An unwritable place raises ``InputError``
+        naming ``path``."""
+        from omnid.io_images import write_bytes_atomic
+
         text = yaml.safe_dump(self.to_mapping(), sort_keys=False, default_flow_style=None)
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent or ".")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                fh.write(text)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, p)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_bytes_atomic(path, text.encode("utf-8"), fsync=True)
 
     @classmethod
     def from_mapping(cls, data: Any, source: str = "calibration") -> Calibration:

@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -65,7 +65,7 @@ SQUARE_GROW_PX = 2
 
 
 @dataclass(frozen=True)
-class DetectionParams:
+class DetectionParams(Settings):
     """Thresholds of the detectors (gray levels of the subtracted image unless stated).
 
     Thesis method (chapter 5): ``block_px``, ``block_coefficient``, ``min_peak_gray`` and
@@ -73,62 +73,41 @@ class DetectionParams:
     fields and ``bgr_weights``.
     """
 
-    block_px: int = 21  # 5.1: enhancement tile size and step, px
-    block_coefficient: float = 1.5  # 5.1: threshold = coefficient · tile mean
-    min_peak_gray: float = 20.0  # 5.4: the window's brightest pixel must exceed this
-    ring_e1_gray: float = 1.0  # 5.4: 12-ring average − 16-ring average ≥ E1
-    ring_e2_gray: float = 1.0  # 5.4: 8-ring average − 12-ring average ≥ E2
-    ring_e3_gray: float = 1.0  # 5.4: 4-ring average − 8-ring average ≥ E3
-    e4_gray: float = 5.0  # 5.4: CircularAverage − SquareAverage ≥ E4
-    bgr_weights: tuple[float, float, float] = (0.0, 1.0, 0.0)  # colour → gray for the laser
-    best_min_peak_gray: float = 10.0  # a dot's smoothed peak above local background ≥ this
-    best_snr: float = 6.0  # … and ≥ this many noise sigmas of the subtracted image
-    best_relative_peak: float = 0.3  # … and ≥ this share of the brightest peak near it
-    best_relative_radius_px: int = 5  # "near": within this radius, px
-    best_background_radius_px: int = 5  # local background: min filter of this radius, px
-    best_min_contrast: float = 0.5  # (peak − ring 3 px out) / peak ≥ this: dots are compact
+    block_px: int = setting(21, 3, 255)  # 5.1: enhancement tile size and step, px
+    block_coefficient: float = setting(1.5, 0.01, 50.0)  # 5.1: threshold = coefficient · tile mean
+    min_peak_gray: float = setting(
+        20.0, 0.0, 65535.0
+    )  # 5.4: the window's brightest pixel must exceed this
+    ring_e1_gray: float = setting(1.0, -255.0, 255.0)  # 5.4: 12-ring average − 16-ring average ≥ E1
+    ring_e2_gray: float = setting(1.0, -255.0, 255.0)  # 5.4: 8-ring average − 12-ring average ≥ E2
+    ring_e3_gray: float = setting(1.0, -255.0, 255.0)  # 5.4: 4-ring average − 8-ring average ≥ E3
+    e4_gray: float = setting(5.0, -255.0, 255.0)  # 5.4: CircularAverage − SquareAverage ≥ E4
+    # colour → gray for the laser (B, G, R)
+    bgr_weights: tuple[float, float, float] = setting((0.0, 1.0, 0.0), -10.0, 10.0)
+    best_min_peak_gray: float = setting(
+        10.0, 0.0, 65535.0
+    )  # a dot's smoothed peak above local background ≥ this
+    best_snr: float = setting(
+        6.0, 0.0, 100.0
+    )  # … and ≥ this many noise sigmas of the subtracted image
+    best_relative_peak: float = setting(
+        0.3, 0.0, 0.99
+    )  # … and ≥ this share of the brightest peak near it
+    best_relative_radius_px: int = setting(5, 1, 20)  # "near": within this radius, px
+    best_background_radius_px: int = setting(
+        5, 2, 20
+    )  # local background: min filter of this radius, px
+    best_min_contrast: float = setting(
+        0.5, 0.0, 0.99
+    )  # (peak − ring 3 px out) / peak ≥ this: dots are compact
 
     def __post_init__(self) -> None:
-        require(3 <= self.block_px <= 255, "block_px", f"must be in [3, 255], got {self.block_px}")
-        require(
-            0.0 < self.block_coefficient <= 50.0,
-            "block_coefficient",
-            f"must be in (0, 50], got {self.block_coefficient}",
-        )
-        for name in ("min_peak_gray", "best_min_peak_gray"):
-            v = getattr(self, name)
-            require(0.0 <= v <= 65535.0, name, f"must be in [0, 65535], got {v}")
-        for name in ("ring_e1_gray", "ring_e2_gray", "ring_e3_gray", "e4_gray"):
-            v = getattr(self, name)
-            require(-255.0 <= v <= 255.0, name, f"must be in [-255, 255], got {v}")
+        super().__post_init__()
         w = self.bgr_weights
         require(
             len(w) == 3 and all(np.isfinite(x) for x in w) and sum(w) > 0,
             "bgr_weights",
             f"must be three finite weights (B, G, R) with a positive sum, got {w}",
-        )
-        require(
-            0.0 <= self.best_snr <= 100.0, "best_snr", f"must be in [0, 100], got {self.best_snr}"
-        )
-        require(
-            0.0 <= self.best_min_contrast < 1.0,
-            "best_min_contrast",
-            f"must be in [0, 1), got {self.best_min_contrast}",
-        )
-        require(
-            0.0 <= self.best_relative_peak < 1.0,
-            "best_relative_peak",
-            f"must be in [0, 1), got {self.best_relative_peak}",
-        )
-        require(
-            1 <= self.best_relative_radius_px <= 20,
-            "best_relative_radius_px",
-            f"must be in [1, 20], got {self.best_relative_radius_px}",
-        )
-        require(
-            2 <= self.best_background_radius_px <= 20,
-            "best_background_radius_px",
-            f"must be in [2, 20], got {self.best_background_radius_px}",
         )
 
 

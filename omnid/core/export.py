@@ -167,3 +167,58 @@ def render_topdown(
     cv2.line(img, (10, y0), (10 + bar, y0), (0, 0, 0), 3)
     cv2.putText(img, "1 m", (10, y0 - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
     return img
+
+
+def with_legend(
+    img: NDArray[np.uint8], title: str, cloud: bool = True, path: bool = False
+) -> NDArray[np.uint8]:
+    """``img`` (a :func:`render_topdown` picture) under a white band with ``title`` and a legend
+    of what the colours mean: cell states, point classes (``cloud``), the path (``path``), the
+    chair and the scale. Returns a new BGR image, as wide as ``img`` (at least 560 px)."""
+    import cv2
+
+    width = max(img.shape[1], 560)
+    items: list[tuple[str, tuple[int, int, int], str]] = [
+        ("free", CELL_BGR[CellState.FREE], "cell"),
+        ("obstacle", CELL_BGR[CellState.OBSTACLE], "cell"),
+        ("drop-off", CELL_BGR[CellState.DROPOFF], "cell"),
+        ("unknown", CELL_BGR[CellState.UNKNOWN], "cell"),
+    ]
+    if cloud:
+        for k, label in (
+            (PointClass.FLOOR, "floor dot"),
+            (PointClass.OBSTACLE, "obstacle dot"),
+            (PointClass.DROPOFF, "drop-off dot"),
+        ):
+            r, g, b = CLASS_RGB[k]
+            items.append((label, (b, g, r), "dot"))
+    if path:
+        items.append(("path", (200, 80, 0), "line"))
+    items.append(("chair (axle dot)", (0, 0, 0), "box"))
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.42
+    x, y, row_h = 10, 44, 20
+    layout: list[tuple[int, int, str, tuple[int, int, int], str]] = []
+    for label, colour, kind in items:
+        w = 22 + cv2.getTextSize(label, font, scale, 1)[0][0] + 16
+        if x + w > width - 10:
+            x, y = 10, y + row_h
+        layout.append((x, y, label, colour, kind))
+        x += w
+    band = np.full((y + 14, width, 3), 255, dtype=np.uint8)
+    cv2.putText(band, title, (10, 22), font, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+    for x0, y0, label, colour, kind in layout:
+        if kind == "cell":
+            cv2.rectangle(band, (x0, y0 - 10), (x0 + 14, y0 + 2), colour, -1)
+            cv2.rectangle(band, (x0, y0 - 10), (x0 + 14, y0 + 2), (90, 90, 90), 1)
+        elif kind == "dot":
+            cv2.circle(band, (x0 + 7, y0 - 4), 5, (30, 30, 30), -1)
+            cv2.circle(band, (x0 + 7, y0 - 4), 4, colour, -1)
+        elif kind == "line":
+            cv2.line(band, (x0, y0 - 4), (x0 + 14, y0 - 4), colour, 2)
+        else:
+            cv2.rectangle(band, (x0, y0 - 10), (x0 + 14, y0 + 2), colour, 1)
+            cv2.circle(band, (x0 + 7, y0 - 1), 2, colour, -1)
+        cv2.putText(band, label, (x0 + 20, y0), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    body = np.full((img.shape[0], width, 3), 255, dtype=np.uint8)
+    body[:, : img.shape[1]] = img
+    return np.vstack([band, body])

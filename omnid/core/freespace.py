@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid, rig_to_robot
 from omnid.core.types import PointClass, PointCloud
 
@@ -56,7 +56,7 @@ _SHIFT = 4  # fractional bits of the fixed-point polygon corners given to cv2.fi
 
 
 @dataclass(frozen=True)
-class FreeSpaceSettings:
+class FreeSpaceSettings(Settings):
     """How clouds become map cells (mm, s).
 
     grid                   the robot-frame grid (extent, resolution)
@@ -77,28 +77,17 @@ class FreeSpaceSettings:
     """
 
     grid: GridSettings = field(default_factory=GridSettings)
-    free_max_edge_mm: float = 250.0
-    dropoff_max_edge_mm: float = 600.0
-    obstacle_max_edge_mm: float = 200.0
-    obstacle_inflation_mm: float = 0.0
-    forget_after_s: float = 0.0
-    clear_after_contradictions: int = 3
-    reanchor_distance_mm: float = 1000.0
+    free_max_edge_mm: float = setting(250.0, 1.0, 2000.0)
+    dropoff_max_edge_mm: float = setting(600.0, 0.0, 5000.0)
+    obstacle_max_edge_mm: float = setting(200.0, 0.0, 2000.0)
+    obstacle_inflation_mm: float = setting(0.0, 0.0, 500.0)
+    forget_after_s: float = setting(0.0, 0.0, 3600.0)
+    clear_after_contradictions: int = setting(3, 1, 100)
+    reanchor_distance_mm: float = setting(1000.0, 0.0, 100000.0)
     neighbours: str = "lattice"
 
     def __post_init__(self) -> None:
-        for key in (
-            "free_max_edge_mm",
-            "dropoff_max_edge_mm",
-            "obstacle_max_edge_mm",
-            "obstacle_inflation_mm",
-            "forget_after_s",
-            "reanchor_distance_mm",
-        ):
-            value = getattr(self, key)
-            require(math.isfinite(value) and value >= 0, key, "must be a finite number ≥ 0")
-        require(self.free_max_edge_mm > 0, "free_max_edge_mm", "must be positive")
-        require(self.clear_after_contradictions >= 1, "clear_after_contradictions", "must be ≥ 1")
+        super().__post_init__()
         require(
             self.neighbours in ("lattice", "delaunay"),
             "neighbours",

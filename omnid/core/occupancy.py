@@ -17,7 +17,7 @@ from enum import IntEnum
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 
 
 class CellState(IntEnum):
@@ -30,17 +30,17 @@ class CellState(IntEnum):
 
 
 @dataclass(frozen=True)
-class GridSettings:
+class GridSettings(Settings):
     """Size and resolution of the robot-centred grid (mm)."""
 
-    resolution_mm: float = 50.0
-    x_min_mm: float = -2000.0
-    x_max_mm: float = 4000.0
-    y_min_mm: float = -3000.0
-    y_max_mm: float = 3000.0
+    resolution_mm: float = setting(50.0, 5.0, 500.0)
+    x_min_mm: float = setting(-2000.0, -20000.0, 20000.0)
+    x_max_mm: float = setting(4000.0, -20000.0, 20000.0)
+    y_min_mm: float = setting(-3000.0, -20000.0, 20000.0)
+    y_max_mm: float = setting(3000.0, -20000.0, 20000.0)
 
     def __post_init__(self) -> None:
-        require(self.resolution_mm > 0, "resolution_mm", "must be positive")
+        super().__post_init__()
         require(self.x_max_mm > self.x_min_mm, "x_max_mm", "must exceed x_min_mm")
         require(self.y_max_mm > self.y_min_mm, "y_max_mm", "must exceed y_min_mm")
 

@@ -1,18 +1,22 @@
 """``OmnidConfig``: every module's settings in one validated tree (``etc/omnid.yaml``).
 
-Read once at start with :func:`load_config` (unknown keys and bad values are refused with the
-dotted key and the file named). On SIGHUP the daemon calls :meth:`ConfigHolder.reload`, which
-keeps the running configuration when the new file is invalid and says why.
+Read once at start with :func:`load_config` (unknown keys, duplicate keys and values outside their
+range are refused with the dotted key and the file named). The dataclass defaults are the shipped
+``etc/omnid.yaml`` (``tests/daemon/test_daemon_config.py`` proves it). On SIGHUP the daemon calls
+:meth:`ConfigHolder.reload_off_loop`, which reads the file in a helper thread with a timeout and
+keeps the running configuration when the new file is invalid, saying why.
 """
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from omnid.config import from_mapping, load_yaml, require
+from omnid.config import Settings, from_mapping, load_yaml, require, setting
 from omnid.core.detect import DetectionParams
 from omnid.core.freespace import FreeSpaceSettings
 from omnid.daemon.motion import MotionSettings
@@ -24,28 +28,25 @@ from omnid.devices.joystick import JoystickSettings as JoystickDeviceSettings
 from omnid.devices.teleop import TeleopSettings
 from omnid.devices.tilt import TiltSettings as TiltSensorSettings
 from omnid.errors import ConfigError
+from omnid.record.settings import RecordSettings
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class ControlSettings:
+class ControlSettings(Settings):
     """The fixed-rate control loop and its watchdogs."""
 
-    rate_hz: float = 50.0
-    status_timeout_s: float = 0.25  # no control-unit status this long → stop
-    max_dt_s: float = 0.1  # a longer gap between cycles is treated as this (no ramp jumps)
-    pose_history_s: float = 5.0  # odometry kept to compensate late perception results
-    # after a control-unit fault or a cycle exception, motion waits until the rider's command
-    # has been released once (the shipped etc/omnid.yaml: true). The default false keeps
-    # clock-injected users (simulator scenarios) resuming with a held command
-    rearm_after_fault: bool = False
-
-    def __post_init__(self) -> None:
-        require(1.0 <= self.rate_hz <= 500.0, "rate_hz", "must be in [1, 500]")
-        require(0 < self.status_timeout_s <= 2.0, "status_timeout_s", "must be in (0, 2]")
-        require(0 < self.max_dt_s <= 1.0, "max_dt_s", "must be in (0, 1]")
-        require(self.pose_history_s > 0, "pose_history_s", "must be positive")
+    rate_hz: float = setting(50.0, 1.0, 500.0)
+    status_timeout_s: float = setting(0.25, 0.01, 2.0)  # no control-unit status this long → stop
+    # a longer gap between cycles is treated as this (no ramp jumps)
+    max_dt_s: float = setting(0.1, 0.005, 1.0)
+    # odometry kept to compensate late perception results
+    pose_history_s: float = setting(5.0, 0.5, 60.0)
+    # after a fault (control unit, lost rider input, a cycle exception) motion waits until the
+    # source that was driving has given a live neutral/stop once the fault has cleared. The
+    # simulator's scripted riders turn it off (omnid.sim.scenario.make_core)
+    rearm_after_fault: bool = True
 
     @property
     def period_s(self) -> float:
@@ -53,46 +54,40 @@ class ControlSettings:
 
 
 @dataclass(frozen=True)
-class PerceptionSettings:
+class PerceptionSettings(Settings):
     """The perception cycle (laser off → mask pair → laser on → base pair → perceive)."""
 
     enabled: bool = True
     method: Literal["best", "thesis"] = "best"
     calibration_path: str = "/etc/omnid/calibration.yaml"
-    period_s: float = 0.5  # start a new cycle at most this often
-    laser_timeout_s: float = 0.5  # wait this long for the control unit to report the laser
+    period_s: float = setting(0.5, 0.01, 10.0)  # start a new cycle at most this often
+    # wait this long for the control unit to report the laser
+    laser_timeout_s: float = setting(0.5, 0.01, 5.0)
     flush_frames: bool = True  # drop frames queued before the laser switched
     capture_policy: Literal["limit", "compensate"] = "limit"
     # speed cap while mask/base frames are taken ("limit"); measured harmless up to 240 mm/s
     # on tiled floors (tools/eval_capture_motion.py, docs/daemon.md): a margin for sharper,
     # specular floor texture than modelled
-    capture_speed_mm_s: float = 80.0
-    rig_x_offset_mm: float = 300.0  # rig origin ahead of the axle midpoint
-    frame_timeout_s: float = 1.0
-    worker_timeout_s: float = 1.0  # a perceive call longer than this: worker killed, restarted
-    worker_nice: int = 10  # the worker process yields the CPU to the control loop (0 = as is)
-
-    def __post_init__(self) -> None:
-        require(self.period_s > 0, "period_s", "must be positive")
-        require(self.worker_timeout_s > 0, "worker_timeout_s", "must be positive")
-        require(0 <= self.worker_nice <= 19, "worker_nice", "must be in [0, 19]")
-        require(self.laser_timeout_s > 0, "laser_timeout_s", "must be positive")
-        require(self.capture_speed_mm_s >= 0, "capture_speed_mm_s", "must not be negative")
-        require(self.frame_timeout_s > 0, "frame_timeout_s", "must be positive")
+    capture_speed_mm_s: float = setting(80.0, 0.0, 500.0)
+    rig_x_offset_mm: float = setting(300.0, -2000.0, 2000.0)  # rig origin ahead of the axle
+    frame_timeout_s: float = setting(1.0, 0.01, 10.0)
+    # a perceive call longer than this: worker killed, restarted
+    worker_timeout_s: float = setting(1.0, 0.05, 30.0)
+    # the worker process yields the CPU to the control loop (0 = as is)
+    worker_nice: int = setting(10, 0, 19)
 
 
 @dataclass(frozen=True)
-class ServiceSettings:
+class ServiceSettings(Settings):
     """systemd integration."""
 
-    status_period_s: float = 1.0  # STATUS= line this often
-
-    def __post_init__(self) -> None:
-        require(self.status_period_s > 0, "status_period_s", "must be positive")
+    status_period_s: float = setting(1.0, 0.1, 60.0)  # STATUS= line this often
+    # SIGHUP: the file is read and validated off the event loop; longer than this is refused
+    reload_timeout_s: float = setting(2.0, 0.1, 30.0)
 
 
 @dataclass(frozen=True)
-class OmnidConfig:
+class OmnidConfig(Settings):
     """Everything ``omnid run`` reads from its configuration file."""
 
     control: ControlSettings = field(default_factory=ControlSettings)
@@ -105,13 +100,22 @@ class OmnidConfig:
     control_unit: ControlUnitSettings = field(default_factory=ControlUnitSettings)
     camera: CameraSettings = field(default_factory=CameraSettings)
     teleop: TeleopSettings = field(default_factory=TeleopSettings)
-    tilt_sensor: TiltSensorSettings = field(
-        default_factory=lambda: TiltSensorSettings(port="/dev/omnid-tilt")
-    )  # the GS311 link (used when rider.tilt.enabled)
+    # the GS311 link (used when rider.tilt.enabled)
+    tilt_sensor: TiltSensorSettings = field(default_factory=TiltSensorSettings)
     joystick_device: JoystickDeviceSettings = field(
         default_factory=JoystickDeviceSettings
     )  # the joystick link (used when rider.joystick.enabled)
     service: ServiceSettings = field(default_factory=ServiceSettings)
+    record: RecordSettings = field(default_factory=RecordSettings)  # MCAP recording, live view
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require(
+            self.control.period_s <= self.control_unit.command_period_s + 1e-9,
+            "control.rate_hz",
+            "one control period must not exceed control_unit.command_period_s (the link "
+            "sends only commands computed within the last two command periods)",
+        )
 
 
 def load_config(path: str | Path) -> OmnidConfig:
@@ -124,11 +128,29 @@ def load_config(path: str | Path) -> OmnidConfig:
 
 
 class ConfigHolder:
-    """The running configuration and its file; :meth:`reload` never leaves it invalid."""
+    """The running configuration and its file; a reload never leaves it invalid.
+
+    :meth:`reload` reads in the calling thread (start-up, tests); :meth:`reload_off_loop` reads
+    and validates in a helper thread with a timeout, so a slow or hostile file cannot hold the
+    event loop (and with it the device links) — the file's size, nesting and aliases are
+    limited by :func:`omnid.config.load_yaml` as well.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.config = load_config(self.path)
+        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._reading: asyncio.Future[OmnidConfig] | None = None
+
+    def _accept(self, new: OmnidConfig) -> tuple[bool, str]:
+        self.config = new
+        log.info("configuration reloaded from %s", self.path)
+        return True, "reloaded"
+
+    @staticmethod
+    def _refuse(why: str) -> tuple[bool, str]:
+        log.error("configuration reload refused, keeping the running one: %s", why)
+        return False, why
 
     def reload(self) -> tuple[bool, str]:
         """Re-read the file. Returns (True, "reloaded") or (False, reason); on failure the
@@ -136,8 +158,30 @@ class ConfigHolder:
         try:
             new = load_config(self.path)
         except ConfigError as exc:
-            log.error("configuration reload refused, keeping the running one: %s", exc)
-            return False, str(exc)
-        self.config = new
-        log.info("configuration reloaded from %s", self.path)
-        return True, "reloaded"
+            return self._refuse(str(exc))
+        return self._accept(new)
+
+    async def reload_off_loop(self, timeout_s: float) -> tuple[bool, str]:
+        """:meth:`reload`, the file read and validated in a helper thread; a read that takes
+        longer than ``timeout_s`` (or one still running from an earlier request) is refused."""
+        if self._reading is not None and not self._reading.done():
+            return self._refuse(f"{self.path}: the previous reload is still reading the file")
+        if self._executor is None:
+            self._executor = concurrent.futures.ThreadPoolExecutor(
+                1, thread_name_prefix="omnid-config"
+            )
+        loop = asyncio.get_running_loop()
+        self._reading = loop.run_in_executor(self._executor, load_config, self.path)
+        try:
+            new = await asyncio.wait_for(asyncio.shield(self._reading), timeout_s)
+        except TimeoutError:
+            return self._refuse(f"{self.path}: reading took longer than {timeout_s:g} s")
+        except ConfigError as exc:
+            return self._refuse(str(exc))
+        return self._accept(new)
+
+    def close(self) -> None:
+        """End the helper thread (a read still running finishes on its own)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None

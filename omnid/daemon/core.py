@@ -63,6 +63,7 @@ STOPPING_FAULTS = (
 #: ``PointCloud.calibration_fit``) means the rig was knocked: the pipeline's own threshold.
 _MIN_CALIBRATION_FIT = HealthSettings().min_explained
 
+
 class StatusSample(Protocol):
     """What the core reads of ``omnid.devices.control_unit.ControlUnitStatus``."""
 

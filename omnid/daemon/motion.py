@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.core.kinematics import (
     MM_PER_CLOCK,
     arc_displacement,
@@ -36,49 +36,35 @@ from omnid.core.kinematics import (
 
 
 @dataclass(frozen=True)
-class MotionSettings:
+class MotionSettings(Settings):
     """Chair geometry, speed limits, ramps and wheel feedback gains."""
 
-    track_mm: float = 560.0  # distance between the drive wheels (L, eqs. 3.8–3.12)
-    mm_per_clock: float = MM_PER_CLOCK  # 471 mm / 15 holes (thesis 4.3.2.3)
-    max_speed_mm_s: float = 240.0  # 32 rpm · 471 mm ≈ 251 mm/s at full duty (table 4.3)
-    max_reverse_speed_mm_s: float = 100.0
-    max_turn_rate_rad_s: float = 0.6
-    accel_mm_s2: float = 250.0  # comfort
-    decel_mm_s2: float = 400.0  # rider-asked slowing
-    emergency_decel_mm_s2: float = 1200.0  # safety / fault stop
-    angular_accel_rad_s2: float = 1.0
-    angular_decel_rad_s2: float = 2.0
-    emergency_angular_decel_rad_s2: float = 5.0
-    full_duty_speed_mm_s: float = 251.0  # wheel speed at duty 1 (feedforward)
-    left_gain: float = 1.0  # per-wheel feedforward calibration
-    right_gain: float = 1.0
-    kp_per_mm_s: float = 0.0015  # duty per mm/s of speed error
-    ki_per_mm: float = 0.003  # duty per mm of integrated error
-    integral_limit: float = 0.25  # |integral term| ≤ this (duty)
-    speed_window_s: float = 0.6  # clock speed estimate window
+    track_mm: float = setting(
+        560.0, 200.0, 1500.0
+    )  # distance between the drive wheels (L, eqs. 3.8–3.12)
+    mm_per_clock: float = setting(MM_PER_CLOCK, 1.0, 200.0)  # 471 mm / 15 holes (thesis 4.3.2.3)
+    # 32 rpm · 471 mm ≈ 251 mm/s at full duty (table 4.3)
+    max_speed_mm_s: float = setting(240.0, 10.0, 2000.0)
+    max_reverse_speed_mm_s: float = setting(100.0, 10.0, 1000.0)
+    max_turn_rate_rad_s: float = setting(0.6, 0.05, 3.0)
+    accel_mm_s2: float = setting(250.0, 10.0, 3000.0)  # comfort
+    decel_mm_s2: float = setting(400.0, 10.0, 5000.0)  # rider-asked slowing
+    emergency_decel_mm_s2: float = setting(1200.0, 10.0, 10000.0)  # safety / fault stop
+    angular_accel_rad_s2: float = setting(1.0, 0.05, 20.0)
+    angular_decel_rad_s2: float = setting(2.0, 0.05, 20.0)
+    emergency_angular_decel_rad_s2: float = setting(5.0, 0.05, 50.0)
+    full_duty_speed_mm_s: float = setting(
+        251.0, 10.0, 3000.0
+    )  # wheel speed at duty 1 (feedforward)
+    left_gain: float = setting(1.0, 0.2, 5.0)  # per-wheel feedforward calibration
+    right_gain: float = setting(1.0, 0.2, 5.0)
+    kp_per_mm_s: float = setting(0.0015, 0.0, 0.1)  # duty per mm/s of speed error
+    ki_per_mm: float = setting(0.003, 0.0, 0.1)  # duty per mm of integrated error
+    integral_limit: float = setting(0.25, 0.0, 1.0)  # |integral term| ≤ this (duty)
+    speed_window_s: float = setting(0.6, 0.05, 5.0)  # clock speed estimate window
 
     def __post_init__(self) -> None:
-        for name in (
-            "track_mm",
-            "mm_per_clock",
-            "max_speed_mm_s",
-            "max_reverse_speed_mm_s",
-            "max_turn_rate_rad_s",
-            "accel_mm_s2",
-            "decel_mm_s2",
-            "emergency_decel_mm_s2",
-            "angular_accel_rad_s2",
-            "angular_decel_rad_s2",
-            "emergency_angular_decel_rad_s2",
-            "full_duty_speed_mm_s",
-            "left_gain",
-            "right_gain",
-            "speed_window_s",
-        ):
-            require(getattr(self, name) > 0, name, "must be positive")
-        for name in ("kp_per_mm_s", "ki_per_mm", "integral_limit"):
-            require(getattr(self, name) >= 0, name, "must not be negative")
+        super().__post_init__()
         require(
             self.decel_mm_s2 >= self.accel_mm_s2,
             "decel_mm_s2",

@@ -40,7 +40,7 @@ from typing import Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 
 log = logging.getLogger(__name__)
 
@@ -80,79 +80,58 @@ class Intent(Enum):
 
 
 @dataclass(frozen=True)
-class TiltSettings:
+class TiltSettings(Settings):
     """Head-tilt interpretation. Angles in degrees, times in seconds."""
 
     enabled: bool = True
-    threshold_deg: float = 12.0  # thesis 4.2.2: T, to enter a command
-    release_deg: float = 8.0  # hysteresis: an active command holds until |angle| < release
-    dwell_s: float = 0.3  # head must stay past T this long before a motion command acts
-    roll_offset_deg: float = 0.0  # calibrated neutral pose
-    pitch_offset_deg: float = 0.0
-    timeout_s: float = 0.2  # no reading for this long → stop (the sensor reads every 10 ms)
+    threshold_deg: float = setting(12.0, 1.0, 45.0)  # thesis 4.2.2: T, to enter a command
+    # hysteresis: an active command holds until |angle| < release
+    release_deg: float = setting(8.0, 0.5, 45.0)
+    # head must stay past T this long before a motion command acts
+    dwell_s: float = setting(0.3, 0.0, 5.0)
+    roll_offset_deg: float = setting(0.0, -45.0, 45.0)  # calibrated neutral pose
+    pitch_offset_deg: float = setting(0.0, -45.0, 45.0)
+    timeout_s: float = setting(0.2, 0.015, 1.0)  # no reading for this long → stop (10 ms reads)
     forward_mode: Literal["hold", "latch"] = "hold"  # latch: forward holds until stop/turn
-    forward_fraction: float = 0.6  # of the maximum speed
-    turn_fraction: float = 0.4  # of the maximum turn rate
-    # rider holds still this long at start; 0 = use the offsets as stored. The shipped
-    # etc/omnid.yaml turns it on (3 s); the default 0 keeps clock-injected users (simulator,
-    # tests) on the thesis behaviour
-    neutral_calibration_s: float = 0.0
-    neutral_max_spread_deg: float = 2.0  # readings farther than this from their median: retake
-    neutral_max_offset_deg: float = 10.0  # a neutral farther than this from level: retake
-    # (below threshold_deg: a head held in a command pose must not become the neutral)
+    forward_fraction: float = setting(0.6, 0.05, 1.0)  # of the maximum speed
+    turn_fraction: float = setting(0.4, 0.05, 1.0)  # of the maximum turn rate
+    # rider holds still this long at start; 0 = use the offsets as stored (the simulator's
+    # scripted heads and clock-injected tests pass 0)
+    neutral_calibration_s: float = setting(3.0, 0.0, 30.0)
+    # readings farther than this from their median: retake
+    neutral_max_spread_deg: float = setting(2.0, 0.1, 20.0)
+    # a neutral farther than this from level: retake (below threshold_deg: a head held in a
+    # command pose must not become the neutral)
+    neutral_max_offset_deg: float = setting(10.0, 0.5, 45.0)
 
     def __post_init__(self) -> None:
-        require(0 < self.threshold_deg <= 45, "threshold_deg", "must be in (0, 45]")
+        super().__post_init__()
         require(
-            0 <= self.neutral_calibration_s <= 30, "neutral_calibration_s", "must be in [0, 30]"
+            self.release_deg <= self.threshold_deg, "release_deg", "must not exceed threshold_deg"
         )
-        require(self.neutral_max_spread_deg > 0, "neutral_max_spread_deg", "must be positive")
-        require(
-            0 < self.neutral_max_offset_deg <= 45, "neutral_max_offset_deg", "must be in (0, 45]"
-        )
-        require(
-            0 < self.release_deg <= self.threshold_deg,
-            "release_deg",
-            "must be in (0, threshold_deg]",
-        )
-        require(0 <= self.dwell_s <= 5, "dwell_s", "must be in [0, 5]")
-        require(abs(self.roll_offset_deg) <= 45, "roll_offset_deg", "must be within ±45")
-        require(abs(self.pitch_offset_deg) <= 45, "pitch_offset_deg", "must be within ±45")
-        require(0 < self.timeout_s <= 5, "timeout_s", "must be in (0, 5]")
-        require(0 < self.forward_fraction <= 1, "forward_fraction", "must be in (0, 1]")
-        require(0 < self.turn_fraction <= 1, "turn_fraction", "must be in (0, 1]")
 
 
 @dataclass(frozen=True)
-class JoystickSettings:
+class JoystickSettings(Settings):
     """Proportional hand control; ``forward`` and ``turn`` (left positive) in [-1, 1]."""
 
     enabled: bool = False
-    deadzone: float = 0.1  # |axis| below this counts as centred
-    timeout_s: float = 0.2  # no reading for this long → stop
-
-    def __post_init__(self) -> None:
-        require(0 <= self.deadzone < 1, "deadzone", "must be in [0, 1)")
-        require(0 < self.timeout_s <= 5, "timeout_s", "must be in (0, 5]")
+    deadzone: float = setting(0.1, 0.0, 0.9)  # |axis| below this counts as centred
+    timeout_s: float = setting(0.2, 0.015, 1.0)  # no reading for this long → stop
 
 
 @dataclass(frozen=True)
-class KeyboardSettings:
+class KeyboardSettings(Settings):
     """Arrow keys (thesis 4.2.1): up forward, left, right, down stop."""
 
     enabled: bool = True
-    hold_s: float = 0.5  # a press holds this long; key repeat renews it
-    forward_fraction: float = 0.5
-    turn_fraction: float = 0.4
-
-    def __post_init__(self) -> None:
-        require(0 < self.hold_s <= 5, "hold_s", "must be in (0, 5]")
-        require(0 < self.forward_fraction <= 1, "forward_fraction", "must be in (0, 1]")
-        require(0 < self.turn_fraction <= 1, "turn_fraction", "must be in (0, 1]")
+    hold_s: float = setting(0.5, 0.05, 5.0)  # a press holds this long; key repeat renews it
+    forward_fraction: float = setting(0.5, 0.05, 1.0)
+    turn_fraction: float = setting(0.4, 0.05, 1.0)
 
 
 @dataclass(frozen=True)
-class RiderSettings:
+class RiderSettings(Settings):
     """All rider inputs and their priority (first wins among sources asking for motion)."""
 
     tilt: TiltSettings = field(default_factory=TiltSettings)
@@ -161,6 +140,7 @@ class RiderSettings:
     priority: tuple[SourceName, ...] = ("joystick", "keyboard", "tilt")
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         require(
             sorted(self.priority) == ["joystick", "keyboard", "tilt"],
             "priority",
@@ -397,6 +377,11 @@ class RiderMux:
                 intent, s.keyboard.forward_fraction, s.keyboard.turn_fraction, "keyboard"
             )
         raise ValueError(f"unknown source {name!r}")
+
+    def source_demands(self, now_s: float) -> dict[str, RiderDemand | None]:
+        """Each source's own demand at ``now_s`` (None: disabled or idle), in priority order —
+        what :meth:`decide` chooses from (for recordings and the live view)."""
+        return {n: self._source_demand(n, now_s) for n in self.settings.priority}
 
     def decide(self, now_s: float) -> RiderDemand:
         """The demand at monotonic time ``now_s``: any stop wins, else the first source moving."""

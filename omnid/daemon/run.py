@@ -9,12 +9,15 @@ Tasks:
   ``control_unit.command_period_s``; its replies arrive through ``core.on_status``. The core
   stops the chair when no status came for ``control.status_timeout_s``, and at once when the
   port is gone (``core.link_ok``).
-- perception cycle (``perception.enabled``): laser off → wait until the control unit *reports*
-  it off → flush stale frames → mask pair → laser on → wait until reported on → flush → base
-  pair → ``perceive`` in a separate **worker process** (:mod:`omnid.daemon.perception_worker`:
-  no GIL shared with the control loop; exceptions, crashes and hangs cost one cycle and restart
-  the worker) → ``core.on_perception(cloud, t_base)``. While frames are taken ``core.capturing``
-  caps the speed (``perception.capture_policy: limit``); the cloud is placed by odometry anyway.
+- perception (``perception.enabled``): the capture cycle :class:`~omnid.daemon.capture.CaptureCycle`
+  (the same state machine the simulator drives) is told the laser state of every control-unit
+  reply and fed camera frames; it decides the laser bit of the next command and which frames
+  make a job (the thesis' cycle: laser off → reported off → flushed mask pair → laser on →
+  reported on → flushed base pair). Each job is perceived in a separate **worker process**
+  (:mod:`omnid.daemon.perception_worker`: no GIL shared with the control loop; exceptions,
+  crashes and hangs cost one cycle and restart the worker) → ``core.on_perception(cloud,
+  t_base)``. While frames are taken ``core.capturing`` caps the speed
+  (``perception.capture_policy: limit``); the cloud is placed by odometry anyway.
   A missing or invalid calibration file refuses the start (one line naming the file); with
   ``perception.enabled: false`` the daemon runs and refuses forward motion (no free space seen).
 - rider inputs: teleop keyboard socket; GS311 tilt sensor (:class:`TiltSensorLink`, readings
@@ -24,9 +27,14 @@ Tasks:
   enabled but silent is a stop (rider mux).
 - systemd: READY=1 once the links run, WATCHDOG=1 from the control loop (so a hung loop is
   restarted), STATUS= once per ``service.status_period_s``.
+- start: :func:`omnid.daemon.preflight.preflight` — the same checks ``omnid run --check``
+  prints (calibration loads, ports, camera URL, teleop socket); an error refuses the start in
+  one line naming the key and the file.
 - signals: SIGTERM/SIGINT → stop at the emergency rate, send stop commands, close, exit 0;
-  SIGHUP → reload the configuration (an invalid file is refused, the old one stays; device
-  and perception settings apply at the next start).
+  SIGHUP → reload the configuration: the file is read and validated in a helper thread with a
+  timeout (``service.reload_timeout_s``), never on the event loop; an invalid or slow file is
+  refused and the old one stays; ``READY=1`` always follows ``RELOADING=1``; device and
+  perception settings apply at the next start.
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from omnid.daemon.capture import CaptureCycle, CaptureFailure, CaptureSettings, Frame
 from omnid.daemon.config import ConfigHolder, OmnidConfig
 from omnid.daemon.core import ControlCore
 from omnid.daemon.service import Notifier
@@ -85,33 +94,31 @@ def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
     return 0.5 * (t_req_s + t_got_s)
 
 
-def load_calibration(config: OmnidConfig) -> Any:
-    """The calibration for the perception cycle; ConfigError naming the file if it is missing
-    or invalid (the daemon refuses to start rather than drive blind)."""
-    from omnid.core.calibration import Calibration
-    from omnid.errors import ConfigError
-
-    path = Path(config.perception.calibration_path)
-    if not path.is_file():
-        raise ConfigError(
-            f"perception.calibration_path: {path} does not exist (write it with `omnid "
-            f"calibrate`, or set perception.enabled: false to run without forward motion)"
-        )
-    return Calibration.load(path)
-
-
 class Daemon:
     """Owns the core, the device links and the tasks (see the module docstring)."""
 
-    def __init__(self, holder: ConfigHolder, notifier: Notifier | None = None) -> None:
+    def __init__(
+        self, holder: ConfigHolder, notifier: Notifier | None = None, calibration: Any = None
+    ) -> None:
         self.holder = holder
         self.notifier = notifier or Notifier()
         self.core = ControlCore(holder.config)
         self.link = ControlUnitLink(holder.config.control_unit, on_status=self._on_status)
         self.stats = LoopStats()
-        self.calibration = (
-            load_calibration(holder.config) if holder.config.perception.enabled else None
-        )
+        if calibration is None and holder.config.perception.enabled:
+            from omnid.daemon.preflight import preflight
+
+            checks = preflight(holder.config, holder.path)
+            checks.raise_first_error(holder.path)
+            calibration = checks.calibration
+        self.calibration = calibration
+        self.recording: Any = None  # omnid.record.session.DaemonRecording (record.path/view)
+        rec = holder.config.record
+        if rec.enabled or rec.view:
+            from omnid.record.session import DaemonRecording
+
+            self.recording = DaemonRecording(holder.config, self.calibration)
+            self.core = self.recording.wrap(self.core)
         self.tilt: Any = None
         self.joystick: Any = None
         self.worker: Any = None
@@ -122,7 +129,12 @@ class Daemon:
         self._closers: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._last_cycle_s = time.monotonic()
-        self._link_was_ok = True
+        self._link_was_ok: bool | None = None  # None: not yet heard (start-up is not a loss)
+        self._reload_task: asyncio.Task[bool] | None = None
+        self.capture_cycle = CaptureCycle(
+            CaptureSettings.from_config(holder.config.perception), start_s=time.monotonic()
+        )
+        self._capture_wake = asyncio.Event()  # a laser report arrived
 
     @property
     def config(self) -> OmnidConfig:
@@ -131,6 +143,8 @@ class Daemon:
     # ---- inputs -------------------------------------------------------------------------
     def _on_status(self, status: Any) -> None:
         self.core.on_status(status)
+        self.capture_cycle.on_laser_report(bool(status.laser_on), float(status.timestamp_s))
+        self._capture_wake.set()
 
     def _on_tilt(self, reading: Any) -> None:
         before = self.core.mux.tilt.active
@@ -194,10 +208,16 @@ class Daemon:
     # ---- the control loop ---------------------------------------------------------------
     def _cycle(self, now: float, urgent: bool = False) -> None:
         healthy = self.link.status is not None
-        if healthy != self._link_was_ok:
+        if healthy != self._link_was_ok and (healthy or self._link_was_ok is not None):
+            was = self._link_was_ok
             self._link_was_ok = healthy
+            if self.recording is not None:
+                self.recording.on_fault("control_unit_link", "back" if healthy else "lost", now)
             if healthy:
-                log.warning("control unit link back")
+                if was is None:
+                    log.info("control unit link up")
+                else:
+                    log.warning("control unit link back")
             else:
                 log.error(
                     "control unit link lost (%s): wheels stop once no status for %.2f s",
@@ -272,56 +292,15 @@ class Daemon:
         )
 
     # ---- perception ---------------------------------------------------------------------
-    async def _wait_laser(self, on: bool, timeout_s: float) -> bool:
-        """Wait until a control-unit reply *after now* reports the laser ``on``; False on
-        timeout (the relay may lag the command)."""
-        t_set = time.monotonic()
-        end = t_set + timeout_s
-        while time.monotonic() < end:
-            st = self.link.status
-            if st is not None and bool(st.laser_on) == on and st.timestamp_s > t_set:
-                return True
-            await asyncio.sleep(0.003)
-        return False
-
-    async def _read(self, camera: Any) -> tuple[Any, Any, float]:
+    async def _read(self, camera: Any) -> Frame:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
-        return img1, img2, frame_time(float(t_cam), t_req, time.monotonic())
+        return Frame(frame_time(float(t_cam), t_req, time.monotonic()), (img1, img2))
 
-    async def capture(self, camera: Any) -> Any:
-        """One mask/base stereo capture with the laser switched through the control unit."""
-        from omnid.core.types import StereoCapture
-
-        p = self.config.perception
-        t0 = time.monotonic()
-        try:
-            self.core.capturing = True
-            self.core.laser_on = False
-            if not await self._wait_laser(False, p.laser_timeout_s):
-                raise TimeoutError(
-                    f"control unit did not report the laser off within {p.laser_timeout_s:g} s"
-                )
-            if p.flush_frames:
-                await camera.flush()
-            m1, m2, t_mask = await self._read(camera)
-            self.core.laser_on = True
-            if not await self._wait_laser(True, p.laser_timeout_s):
-                raise TimeoutError(
-                    f"control unit did not report the laser on within {p.laser_timeout_s:g} s"
-                )
-            if p.flush_frames:
-                await camera.flush()
-            b1, b2, t_base = await self._read(camera)
-        finally:
-            self.core.capturing = False
-            self.core.laser_on = True
-        self.stats.note(self.stats.capture_s, time.monotonic() - t0)
-        self.stats.note(self.stats.mask_to_base_s, t_base - t_mask)
-        return StereoCapture(m1, b1, m2, b2, timestamp_s=t_base)
-
-    def _perception_error(self, what: str, exc: BaseException) -> None:
+    def _perception_error(self, what: str, exc: BaseException | str) -> None:
         self.stats.perception_errors += 1
+        if self.recording is not None:
+            self.recording.on_fault(f"perception_{what}", str(exc))
         n = self.stats.perception_errors
         if n == 1 or n % 20 == 0:
             log.warning(
@@ -331,68 +310,135 @@ class Daemon:
                 exc,
             )
 
+    def _apply_capture(self) -> None:
+        """The capture cycle's laser and ``capturing`` requests into the core (whose next cycle
+        puts the laser bit on the wire)."""
+        cycle = self.capture_cycle
+        self.core.laser_on = cycle.laser_on
+        self.core.capturing = cycle.capturing
+
+    async def _capture_wait(self, until_s: float) -> None:
+        """Sleep until ``until_s``, a laser report or a stop request, whichever comes first."""
+        rest = until_s - time.monotonic()
+        if rest <= 0.0:
+            return
+        self._capture_wake.clear()
+        waits = [asyncio.ensure_future(e.wait()) for e in (self._capture_wake, self._stop)]
+        try:
+            await asyncio.wait(waits, timeout=min(rest, 1.0), return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waits:
+                w.cancel()
+
     async def perception_loop(self) -> None:
-        from omnid.core.pipeline import PerceptionSettings as PipelineSettings
+        from omnid.daemon.capture import pipeline_arguments
         from omnid.daemon.perception_worker import PerceptionFailed, PerceptionWorker
         from omnid.devices.camera import open_camera
         from omnid.errors import DeviceError
 
         cfg = self.config
         p = cfg.perception
+        method, settings = pipeline_arguments(cfg)
         self.worker = PerceptionWorker(
             self.calibration,
-            p.method,
-            PipelineSettings(detection=cfg.detection),
+            method,
+            settings,
             timeout_s=p.worker_timeout_s,
             nice=p.worker_nice,
         )
         self._closers.append(self.worker.close)
         await self.worker.start()
+        cycle = self.capture_cycle
         camera: Any = None
+
+        async def close_camera() -> None:
+            nonlocal camera
+            if camera is not None:
+                with contextlib.suppress(Exception):
+                    await camera.close()
+                camera = None
+
         while not self._stop.is_set():
-            started = time.monotonic()
             try:
-                if camera is None:
-                    camera = open_camera(cfg.camera)
-                cap = await self.capture(camera)
-                w0 = time.monotonic()
-                cloud = await self.worker.perceive(cap)
-                t_done = time.monotonic()
-                self.core.on_perception(cloud, cap.timestamp_s)
-                self.stats.note(self.stats.perception_s, t_done - w0)
-                self.stats.note(self.stats.perception_latency_s, time.monotonic() - cap.timestamp_s)
-                self.stats.perception_cycles += 1
-                if self.stats.perception_errors and self.stats.perception_cycles == 1:
-                    log.info("perception running (%d dots)", len(cloud))
+                for out in cycle.poll(time.monotonic()):
+                    if isinstance(out, CaptureFailure):
+                        self._perception_error(out.kind, out.message)
+                        if out.kind == "camera":
+                            await close_camera()
+                        continue
+                    self.stats.note(self.stats.capture_s, time.monotonic() - out.started_s)
+                    if out.masks:
+                        self.stats.note(self.stats.mask_to_base_s, out.t_s - out.masks[0].t_s)
+                    cap = out.stereo_capture()
+                    if self.recording is not None:
+                        self.recording.on_capture(cap)  # rate-limited, encoded off the loop
+                    w0 = time.monotonic()
+                    cloud = await self.worker.perceive(cap)
+                    t_done = time.monotonic()
+                    self.core.on_perception(cloud, out.t_s)
+                    self.stats.note(self.stats.perception_s, t_done - w0)
+                    self.stats.note(self.stats.perception_latency_s, time.monotonic() - out.t_s)
+                    self.stats.perception_cycles += 1
+                    if self.stats.perception_errors and self.stats.perception_cycles == 1:
+                        log.info("perception running (%d dots)", len(cloud))
+                self._apply_capture()
+                if not cycle.wants_frame():
+                    await self._capture_wait(cycle.next_poll_s)
+                    continue
+                try:
+                    if camera is None:
+                        camera = open_camera(cfg.camera)
+                    if cycle.flush_needed:
+                        await camera.flush()
+                    rest = max(cycle.frame_deadline_s - time.monotonic(), 0.001)
+                    cycle.on_frame(await asyncio.wait_for(self._read(camera), rest))
+                except TimeoutError as exc:
+                    if isinstance(exc, DeviceError):
+                        cycle.frame_failed(str(exc))
+                    # else: past the cycle's frame deadline; its next poll says so
+                except (DeviceError, OSError) as exc:
+                    cycle.frame_failed(f"{type(exc).__name__}: {exc}")
             except PerceptionFailed as exc:
                 self._perception_error("worker", exc)
-            except (DeviceError, OSError) as exc:
-                self._perception_error("camera", exc)
-                if camera is not None:
-                    with contextlib.suppress(Exception):
-                        await camera.close()
-                    camera = None
-            except TimeoutError as exc:
-                self._perception_error("laser", exc)
             except asyncio.CancelledError:
                 raise
             except Exception as exc:  # a bug here must not end perception for good
                 self._perception_error("internal", exc)
                 log.debug("perception cycle exception", exc_info=True)
-            rest = p.period_s - (time.monotonic() - started)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._stop.wait(), timeout=max(rest, 0.01))
-        if camera is not None:
-            with contextlib.suppress(Exception):
-                await camera.close()
+                await self._capture_wait(time.monotonic() + 0.01)
+        await close_camera()
 
     # ---- life cycle ---------------------------------------------------------------------
-    def reload(self) -> bool:
+    def _on_sighup(self) -> None:
+        if self._reload_task is not None and not self._reload_task.done():
+            log.warning("SIGHUP ignored: a configuration reload is still running")
+            return
+        self._reload_task = asyncio.create_task(self.reload(), name="reload")
+
+    async def reload(self) -> bool:
+        """Re-read the configuration off the event loop (:meth:`ConfigHolder.reload_off_loop`)
+        and swap in a new core that keeps the map, odometry, ramps and rider state. READY=1
+        follows RELOADING=1 whatever happens."""
         self.notifier.reloading()
-        ok, why = self.holder.reload()
-        if not ok:
-            self.notifier.send(f"READY=1\nSTATUS=reload refused: {why}")
+        status = "reload failed"
+        try:
+            ok, why = await self.holder.reload_off_loop(self.config.service.reload_timeout_s)
+            if not ok:
+                status = f"reload refused: {why}"
+                return False
+            self._swap_core()
+            status = "reloaded"
+            log.info(
+                "configuration reloaded (device and perception settings apply at the next start)"
+            )
+            return True
+        except Exception:
+            log.exception("configuration reload failed; the running configuration stays")
             return False
+        finally:
+            self.notifier.send("READY=1\nSTATUS=" + status.replace("\n", " "))
+
+    def _swap_core(self) -> None:
         old = self.core
         new = ControlCore(self.holder.config, world_map=old.map)
         new.status, new.perception_time_s = old.status, old.perception_time_s
@@ -406,10 +452,12 @@ class Daemon:
             # keep the neutral pose measured at start across a reload
             new.mux.tilt.calibrating = False
             new.mux.tilt.set_neutral(old.mux.tilt.roll_offset_deg, old.mux.tilt.pitch_offset_deg)
-        self.core = new
-        self.notifier.send("READY=1\nSTATUS=reloaded")
-        log.info("configuration reloaded (device and perception settings apply at the next start)")
-        return True
+        if self.recording is not None:
+            self.core = self.recording.wrap(new)
+            # replay goes on with the recorded start configuration: the reload is marked
+            self.recording.on_fault("config_reloaded", "replay compares with the start config")
+        else:
+            self.core = new
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -419,7 +467,7 @@ class Daemon:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
-        loop.add_signal_handler(signal.SIGHUP, self.reload)
+        loop.add_signal_handler(signal.SIGHUP, self._on_sighup)
         if self.config.perception.enabled:
             # heavy imports now, before the control loop runs (an import inside a task would
             # hold the event loop for hundreds of ms)
@@ -430,6 +478,8 @@ class Daemon:
 
         gc.collect()
         gc.freeze()  # start-up objects leave the collector's scans: shorter GC pauses in the loop
+        if self.recording is not None:
+            self.recording.start()  # a file that cannot be written is logged, never fatal
         await self.link.start()
         try:
             await self._start_inputs()
@@ -471,17 +521,39 @@ class Daemon:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(close(), timeout=3.0)
         await self.link.stop()
+        self.holder.close()
         log.info("omnid stopped; wheels at zero")
+        if self.recording is not None:
+            self.recording.close()
 
 
-def main(config_path: str, stats_out: str | None = None) -> int:
+def main(
+    config_path: str,
+    stats_out: str | None = None,
+    record: str | None = None,
+    view: str | None = None,
+) -> int:
     """Load the configuration and calibration (errors name file and key) and run until
-    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit."""
+    SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit; ``record`` /
+    ``view``: the command line's ``--record FILE`` / ``--view HOST:PORT`` (over ``record.*``)."""
+    from omnid.daemon.preflight import preflight
+
     holder = ConfigHolder(config_path)
+    if record or view:
+        import dataclasses
+
+        from omnid.record.session import with_overrides
+
+        cfg = holder.config
+        holder.config = dataclasses.replace(cfg, record=with_overrides(cfg.record, record, view))
+    checks = preflight(holder.config, config_path)
+    checks.raise_first_error(config_path)
+    for warning in checks.warnings:
+        log.warning("%s: %s", warning.what, warning.detail)
     daemon_ref: list[Daemon] = []
 
     async def amain() -> int:
-        d = Daemon(holder)
+        d = Daemon(holder, calibration=checks.calibration)
         daemon_ref.append(d)
         return await d.run()
 

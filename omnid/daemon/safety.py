@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.core.kinematics import integrate_arc
 from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid
 
@@ -74,49 +74,41 @@ class Reason(Enum):
 
 
 @dataclass(frozen=True)
-class SafetySettings:
+class SafetySettings(Settings):
     """Footprint (mm, robot frame: axle midpoint origin), zones and limits."""
 
-    footprint_front_mm: float = 350.0  # from the axle forward (drive wheels are at the front)
-    footprint_rear_mm: float = 750.0  # from the axle backward (castors)
-    footprint_width_mm: float = 700.0
-    margin_mm: float = 50.0  # added on every side
-    horizon_mm: float = 2500.0  # look-ahead along the path (fastest footprint point)
-    stop_distance_mm: float = 150.0
-    slow_distance_mm: float = 600.0
-    slow_speed_mm_s: float = 100.0
-    approach_time_s: float = 2.0  # time to the stop line must be at least this
-    brake_decel_mm_s2: float = 600.0  # the chair must be able to stop before the stop line
-    unknown_distance_mm: float = 1000.0
-    unknown_max_fraction: float = 0.3
-    unknown_speed_mm_s: float = 120.0
-    perception_timeout_s: float = 1.5
-    log_interval_s: float = 2.0  # one log line per reason at most this often
+    # from the axle forward (drive wheels are at the front)
+    footprint_front_mm: float = setting(350.0, 50.0, 2000.0)
+    footprint_rear_mm: float = setting(750.0, 50.0, 2000.0)  # from the axle backward (castors)
+    footprint_width_mm: float = setting(700.0, 200.0, 2000.0)
+    margin_mm: float = setting(50.0, 0.0, 500.0)  # added on every side
+    # look-ahead along the path (fastest footprint point)
+    horizon_mm: float = setting(2500.0, 200.0, 10000.0)
+    stop_distance_mm: float = setting(150.0, 10.0, 2000.0)
+    slow_distance_mm: float = setting(600.0, 10.0, 5000.0)
+    slow_speed_mm_s: float = setting(100.0, 10.0, 1000.0)
+    # time to the stop line must be at least this
+    approach_time_s: float = setting(2.0, 0.1, 10.0)
+    # the chair must be able to stop before the stop line
+    brake_decel_mm_s2: float = setting(600.0, 50.0, 5000.0)
+    unknown_distance_mm: float = setting(1000.0, 0.0, 10000.0)
+    unknown_max_fraction: float = setting(0.3, 0.0, 1.0)
+    unknown_speed_mm_s: float = setting(120.0, 10.0, 1000.0)
+    perception_timeout_s: float = setting(1.5, 0.05, 5.0)
+    log_interval_s: float = setting(2.0, 0.1, 600.0)  # one log line per reason at most this often
     # escape moves in the stop zone (see the module docstring); 0 speed disables them
-    escape_speed_mm_s: float = 0.0  # |v| cap of an escape move (0: no escapes, main's rule)
-    escape_turn_rad_s: float = 0.05  # |ω| cap: the farthest footprint corner at ≈ 45 mm/s
-    escape_step_mm: float = 30.0  # the short step (fastest point) the gap is evaluated over
-    escape_tolerance_mm: float = 2.0  # gap decrease still counted as "not closing"
+    # |v| cap of an escape move (0: no escapes, main's rule)
+    escape_speed_mm_s: float = setting(0.0, 0.0, 200.0)
+    # |ω| cap: the farthest footprint corner at ≈ 45 mm/s
+    escape_turn_rad_s: float = setting(0.05, 0.0, 1.0)
+    # the short step (fastest point) the gap is evaluated over
+    escape_step_mm: float = setting(30.0, 1.0, 200.0)
+    escape_tolerance_mm: float = setting(
+        2.0, 0.0, 50.0
+    )  # gap decrease still counted as "not closing"
 
     def __post_init__(self) -> None:
-        for name in (
-            "footprint_front_mm",
-            "footprint_rear_mm",
-            "footprint_width_mm",
-            "horizon_mm",
-            "stop_distance_mm",
-            "slow_speed_mm_s",
-            "approach_time_s",
-            "brake_decel_mm_s2",
-            "unknown_speed_mm_s",
-            "perception_timeout_s",
-            "log_interval_s",
-        ):
-            require(getattr(self, name) > 0, name, "must be positive")
-        require(self.margin_mm >= 0, "margin_mm", "must not be negative")
-        for name in ("escape_speed_mm_s", "escape_turn_rad_s", "escape_tolerance_mm"):
-            require(getattr(self, name) >= 0, name, "must not be negative")
-        require(0 < self.escape_step_mm <= 200.0, "escape_step_mm", "must be in (0, 200]")
+        super().__post_init__()
         require(
             self.escape_speed_mm_s <= self.slow_speed_mm_s,
             "escape_speed_mm_s",
@@ -132,8 +124,6 @@ class SafetySettings:
             "horizon_mm",
             "must exceed slow_distance_mm",
         )
-        require(0 <= self.unknown_max_fraction <= 1, "unknown_max_fraction", "must be in [0, 1]")
-        require(self.unknown_distance_mm >= 0, "unknown_distance_mm", "must not be negative")
 
 
 @dataclass(frozen=True)

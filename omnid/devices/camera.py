@@ -42,7 +42,7 @@ from urllib.parse import parse_qs, urlsplit
 import numpy as np
 from numpy.typing import NDArray
 
-from omnid.config import require
+from omnid.config import Settings, setting
 from omnid.errors import ConfigError, DeviceClosed, DeviceError, DeviceTimeout, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -56,23 +56,18 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
 @dataclass(frozen=True)
-class CameraSettings:
+class CameraSettings(Settings):
     """Camera source settings; ``url`` picks the backend (see the module docstring)."""
 
-    url: str = "v4l2:///dev/video0,/dev/video2"
-    timeout_s: float = 1.0
-    width_px: int = 640
-    height_px: int = 480
-    fps: float = 30.0
-    exposure: float | None = None  # device units (cv2.CAP_PROP_EXPOSURE); None = auto
-    buffer_size: int = 1  # frames the driver may queue (cv2.CAP_PROP_BUFFERSIZE)
+    url: str = "v4l2:///dev/omnid-camera1,/dev/omnid-camera2"  # udev names (etc/udev)
+    timeout_s: float = setting(1.0, 0.01, 10.0)
+    width_px: int = setting(640, 16, 8192)
+    height_px: int = setting(480, 16, 8192)
+    fps: float = setting(30.0, 1.0, 240.0)
+    # device units (cv2.CAP_PROP_EXPOSURE); None = auto
+    exposure: float | None = setting(None, -100000.0, 100000.0)
+    buffer_size: int = setting(1, 1, 32)  # frames the driver may queue (cv2.CAP_PROP_BUFFERSIZE)
     grayscale: bool = True
-
-    def __post_init__(self) -> None:
-        require(self.timeout_s > 0.0, "timeout_s", "must be > 0")
-        require(self.width_px > 0 and self.height_px > 0, "width_px", "must be > 0")
-        require(self.fps > 0.0, "fps", "must be > 0")
-        require(1 <= self.buffer_size <= 32, "buffer_size", "must be in 1..32")
 
 
 def _gray(img: Any, grayscale: bool) -> Image:

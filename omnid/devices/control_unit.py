@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.devices import cu_codec as codec
 from omnid.devices.link import LinkHealth, PolledLink, require_reconnect
 from omnid.devices.transport import Rs485Options, Transport, open_transport
@@ -120,45 +120,41 @@ class ControlUnitStatus:
 
 
 @dataclass(frozen=True)
-class ControlUnitSettings:
+class ControlUnitSettings(Settings):
     """Settings of the control-unit link (section ``control_unit`` of the daemon's YAML).
 
     ``port``: a device path (``/dev/serial/by-id/...``) or ``loop://``. ``unit_watchdog_s`` is sent
     in every command (the unit stops the motors after that long without one).
     """
 
-    port: str = "/dev/ttyUSB0"
-    baudrate: int = 115200
-    command_period_s: float = 0.02
-    reply_timeout_s: float = 0.015
-    unit_watchdog_s: float = 0.25
-    max_missed_replies: int = 2
+    port: str = "/dev/omnid-control-unit"  # the udev name (etc/udev)
+    baudrate: int = setting(115200, 9600, 921600)
+    command_period_s: float = setting(0.02, 0.005, 0.2)
+    reply_timeout_s: float = setting(0.015, 0.002, 0.1)
+    unit_watchdog_s: float = setting(0.25, 0.02, 2.0)  # protocol: WATCHDOG_MS 20–2000
+    max_missed_replies: int = setting(2, 1, 3)
     rs485: Rs485Options | None = None
-    reconnect_initial_s: float = 0.05
-    reconnect_max_s: float = 1.0
+    reconnect_initial_s: float = setting(0.05, 0.01, 10.0)
+    reconnect_max_s: float = setting(1.0, 0.01, 60.0)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         require(bool(self.port), "port", "must name a device path or loop://")
         require(
             self.baudrate in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600),
             "baudrate",
             f"{self.baudrate} is not a standard rate (9600 … 921600)",
         )
-        require(0.005 <= self.command_period_s <= 0.2, "command_period_s", "must be 0.005–0.2 s")
         require(
-            0.002 <= self.reply_timeout_s < self.command_period_s,
+            self.reply_timeout_s < self.command_period_s,
             "reply_timeout_s",
-            "must be ≥ 0.002 s and shorter than command_period_s",
-        )
-        require(
-            0.02 <= self.unit_watchdog_s <= 2.0, "unit_watchdog_s", "must be 0.02–2 s (protocol)"
+            "must be shorter than command_period_s",
         )
         require(
             self.unit_watchdog_s >= 2 * self.command_period_s,
             "unit_watchdog_s",
             "must be at least two command periods, or the unit trips between commands",
         )
-        require(1 <= self.max_missed_replies <= 3, "max_missed_replies", "must be 1–3")
         require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
 
 

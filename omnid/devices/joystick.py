@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.devices.link import require_reconnect
 from omnid.errors import ConfigError, DeviceClosed, DeviceError
 
@@ -72,36 +72,39 @@ class JoystickReading:
 
 
 @dataclass(frozen=True)
-class JoystickSettings:
+class JoystickSettings(Settings):
     """Joystick device and mapping settings."""
 
     url: str = "evdev:///dev/input/event0"
-    dead_zone: float = 0.15  # fraction of half-travel ignored around the centre
-    command_threshold: float = 0.5  # deflection that counts as a discrete command
-    axis_min: int = 0  # raw range of both axes (evdev: overridden by EVIOCGABS when available)
-    axis_max: int = 255
-    x_code: int = ABS_X
-    y_code: int = ABS_Y
-    forward_sign: int = -1  # stick pushed away gives low Y on most devices
-    turn_sign: int = -1  # stick pushed right gives high X; turn + is left
-    stale_after_s: float = 0.2
-    reconnect_initial_s: float = 0.1  # after an unplug, retry opening with this back-off …
-    reconnect_max_s: float = 2.0  # … doubling up to this
-    hid_x_byte: int = 0
-    hid_y_byte: int = 1
-    hid_report_size: int = 64
+    dead_zone: float = setting(0.15, 0.0, 0.9)  # fraction of half-travel ignored around the centre
+    command_threshold: float = setting(
+        0.5, 0.01, 1.0
+    )  # deflection that counts as a discrete command
+    # raw range of both axes (evdev: overridden by EVIOCGABS when available)
+    axis_min: int = setting(0, -(2**31), 2**31 - 1)
+    axis_max: int = setting(255, -(2**31), 2**31 - 1)
+    x_code: int = setting(ABS_X, 0, 0x3F)  # evdev ABS_* codes
+    y_code: int = setting(ABS_Y, 0, 0x3F)
+    forward_sign: int = setting(-1, -1, 1)  # stick pushed away gives low Y on most devices
+    turn_sign: int = setting(-1, -1, 1)  # stick pushed right gives high X; turn + is left
+    stale_after_s: float = setting(0.2, 0.01, 2.0)
+    # after an unplug, retry opening with this back-off …
+    reconnect_initial_s: float = setting(0.1, 0.01, 10.0)
+    reconnect_max_s: float = setting(2.0, 0.01, 60.0)  # … doubling up to this
+    hid_x_byte: int = setting(0, 0, 255)
+    hid_y_byte: int = setting(1, 0, 255)
+    hid_report_size: int = setting(64, 2, 1024)
 
     def __post_init__(self) -> None:
-        require(0.0 <= self.dead_zone < 1.0, "dead_zone", "must be in [0, 1)")
+        super().__post_init__()
         require(
-            self.dead_zone < self.command_threshold <= 1.0,
+            self.dead_zone < self.command_threshold,
             "command_threshold",
-            "must be in (dead_zone, 1]",
+            "must exceed dead_zone",
         )
         require(self.axis_max > self.axis_min, "axis_max", "must be > axis_min")
         require(self.forward_sign in (-1, 1), "forward_sign", "must be 1 or -1")
         require(self.turn_sign in (-1, 1), "turn_sign", "must be 1 or -1")
-        require(self.stale_after_s > 0.0, "stale_after_s", "must be > 0")
         require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.errors import ConfigError, DeviceError
 
 log = logging.getLogger(__name__)
@@ -54,20 +54,18 @@ class KeyCommand:
 
 
 @dataclass(frozen=True)
-class TeleopSettings:
+class TeleopSettings(Settings):
     """Teleop socket settings."""
 
     socket_path: str = "/run/omnid/teleop.sock"
     group: str | None = None  # group allowed to drive (with mode 0660); None = daemon's group
-    mode: int = 0o660
-    max_clients: int = 4
-    max_line_bytes: int = 64
+    mode: int = setting(0o660, 0, 0o777)
+    max_clients: int = setting(4, 1, 64)
+    max_line_bytes: int = setting(64, 16, 4096)
 
     def __post_init__(self) -> None:
-        require(0 <= self.mode <= 0o777, "mode", "must be a permission mode like 0o660")
+        super().__post_init__()
         require(self.mode & 0o007 == 0, "mode", "must not grant access to others (e.g. 0o660)")
-        require(self.max_clients >= 1, "max_clients", "must be >= 1")
-        require(self.max_line_bytes >= 16, "max_line_bytes", "must be >= 16")
 
 
 class TeleopServer:

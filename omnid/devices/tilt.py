@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from omnid.config import require
+from omnid.config import Settings, require, setting
 from omnid.devices import gs311_codec as codec
 from omnid.devices.link import LinkHealth, PolledLink, require_reconnect
 from omnid.devices.transport import Transport, open_transport
@@ -56,35 +56,34 @@ class TiltReading:
 
 
 @dataclass(frozen=True)
-class TiltSettings:
+class TiltSettings(Settings):
     """Settings of the tilt-sensor link (section ``tilt`` of the daemon's YAML).
 
     The last five keys describe the reply's data layout (see :mod:`omnid.devices.gs311_codec`),
     so a real unit can be matched without code changes.
     """
 
-    port: str = "/dev/ttyUSB1"
-    baudrate: int = 115200
-    poll_period_s: float = 0.01
-    request_timeout_s: float = 0.008
-    stale_after_s: float = 0.1
-    reconnect_initial_s: float = 0.05
-    reconnect_max_s: float = 1.0
-    hid_report_size: int = 64
+    port: str = "/dev/omnid-tilt"  # the udev name (etc/udev)
+    baudrate: int = setting(115200, 1200, 3_000_000)
+    poll_period_s: float = setting(0.01, 0.002, 0.5)
+    request_timeout_s: float = setting(0.008, 0.001, 0.5)
+    stale_after_s: float = setting(0.1, 0.004, 2.0)
+    reconnect_initial_s: float = setting(0.05, 0.01, 10.0)
+    reconnect_max_s: float = setting(1.0, 0.01, 60.0)
+    hid_report_size: int = setting(64, 2, 1024)
     byte_order: Literal["big", "little"] = "big"
-    deg_per_count: float = 90.0 / 4096.0
-    roll_sign: int = 1
-    pitch_sign: int = 1
-    count_bits: int = 12
+    deg_per_count: float = setting(90.0 / 4096.0, 1e-6, 1.0)
+    roll_sign: int = setting(1, -1, 1)
+    pitch_sign: int = setting(1, -1, 1)
+    count_bits: int = setting(12, 8, 16)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         require(bool(self.port), "port", "must name a device path, loop:// or hid://VID:PID")
-        require(1200 <= self.baudrate <= 3_000_000, "baudrate", "must be 1200 … 3000000")
-        require(0.002 <= self.poll_period_s <= 0.5, "poll_period_s", "must be 0.002–0.5 s")
         require(
-            0.001 <= self.request_timeout_s <= self.poll_period_s,
+            self.request_timeout_s <= self.poll_period_s,
             "request_timeout_s",
-            "must be ≥ 0.001 s and at most poll_period_s (half duplex: one request at a time)",
+            "must be at most poll_period_s (half duplex: one request at a time)",
         )
         require(
             self.stale_after_s >= 2 * self.poll_period_s,

@@ -27,7 +27,7 @@ import errno
 import os
 from dataclasses import dataclass
 
-from omnid.config import require
+from omnid.config import Settings, setting
 from omnid.errors import DeviceClosed, DeviceError, DeviceTimeout
 
 __all__ = [
@@ -43,7 +43,7 @@ _READ_CHUNK = 4096
 
 
 @dataclass(frozen=True)
-class Rs485Options:
+class Rs485Options(Settings):
     """Kernel RS-485 mode of a serial port (``serial.rs485.RS485Settings``), where the driver has it.
 
     ``rts_level_for_tx`` / ``rts_level_for_rx``: RTS (driver-enable) level while sending /
@@ -52,12 +52,8 @@ class Rs485Options:
 
     rts_level_for_tx: bool = True
     rts_level_for_rx: bool = False
-    delay_before_tx_s: float = 0.0
-    delay_before_rx_s: float = 0.0
-
-    def __post_init__(self) -> None:
-        require(0.0 <= self.delay_before_tx_s <= 0.1, "delay_before_tx_s", "must be in [0, 0.1] s")
-        require(0.0 <= self.delay_before_rx_s <= 0.1, "delay_before_rx_s", "must be in [0, 0.1] s")
+    delay_before_tx_s: float = setting(0.0, 0.0, 0.1)
+    delay_before_rx_s: float = setting(0.0, 0.0, 0.1)
 
 
 class Transport:

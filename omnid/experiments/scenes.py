@@ -29,43 +29,43 @@ from omnid.core.calibration import Calibration
 from omnid.core.geometry import StereoRig
 from omnid.core.types import PointClass, PointCloud, StereoCapture
 from omnid.sim.laser import LaserProjector
-from omnid.sim.render import RenderOptions, render_camera_pair
+from omnid.sim.render import RenderOptions, render_hits
 from omnid.sim.rigs import misaligned_rig
-from omnid.sim.scenes import Scene, get_scene
+from omnid.sim.scenes import Scene, floor_hits, get_scene
 from omnid.sim.world import LaserHits, cast_laser
 
 METHODS: tuple[str, ...] = ("best", "thesis")
 
 
-def scene_hits(scene: Scene, rig: StereoRig) -> LaserHits:
-    """Where the laser dots of ``scene`` fall, and which mirror sees each."""
-    return cast_laser(scene.world, scene.pose, scene.mount, LaserProjector(), rig)
+def scene_hits(scene: Scene, rig: StereoRig, laser: LaserProjector | None = None) -> LaserHits:
+    """Where the dots of ``laser`` (default: the simulator's physical
+    :class:`~omnid.sim.laser.LaserProjector`) fall in ``scene``, and which mirror sees each."""
+    return cast_laser(scene.world, scene.pose, scene.mount, laser or LaserProjector(), rig)
 
 
-def render_hits(
-    rig: StereoRig, hits: LaserHits, seed: int, options: RenderOptions | None = None
+def floor_capture(
+    rig: StereoRig,
+    seed: int,
+    options: RenderOptions | None = None,
+    laser: LaserProjector | None = None,
 ) -> StereoCapture:
-    """Mask/base capture in which each camera shows only the dots it can see."""
-    rng = np.random.default_rng(seed)
-    opts = options or RenderOptions()
-    m1, b1 = render_camera_pair(rig.cam1, rig.cam1.project(hits.xyz[hits.visible1]), opts, rng)
-    m2, b2 = render_camera_pair(rig.cam2, rig.cam2.project(hits.xyz[hits.visible2]), opts, rng)
-    return StereoCapture(m1, b1, m2, b2)
-
-
-def floor_capture(rig: StereoRig, seed: int, options: RenderOptions | None = None) -> StereoCapture:
     """The empty floor at the rig's floor depth, as ``omnid calibrate`` wants it."""
-    from omnid.sim.installation import installation_captures
-
-    return installation_captures(rig, LaserProjector(), seed=seed, options=options)[0]
+    return render_hits(rig, floor_hits(rig, laser or LaserProjector()), seed, options)
 
 
-def calibrate_on_floor(rig: StereoRig, seed: int) -> Calibration:
+def calibrate_on_floor(
+    rig: StereoRig,
+    seed: int,
+    laser: LaserProjector | None = None,
+    options: RenderOptions | None = None,
+) -> Calibration:
     """Calibration as the installer makes it: the empty floor plus the extra captures (a box
     and a wall ahead, :mod:`omnid.sim.installation`), no other knowledge of ``rig``."""
     from omnid.sim.installation import calibrate_installed
 
-    cal: Calibration = calibrate_installed(rig, LaserProjector(), seed=seed)
+    cal: Calibration = calibrate_installed(
+        rig, laser or LaserProjector(), seed=seed, options=options
+    )
     return cal
 
 
@@ -119,13 +119,22 @@ class SceneRun:
     truth_index: NDArray[np.intp]
 
 
-def evaluate(scene: Scene, rig: StereoRig, calib: Calibration, method: str, seed: int) -> SceneRun:
-    """Render ``scene`` on ``rig``, perceive it with ``method`` (its own detector) and score it."""
+def evaluate(
+    scene: Scene,
+    rig: StereoRig,
+    calib: Calibration,
+    method: str,
+    seed: int,
+    laser: LaserProjector | None = None,
+    options: RenderOptions | None = None,
+) -> SceneRun:
+    """Render ``scene`` on ``rig`` with ``laser`` (default :class:`LaserProjector`) and
+    ``options``, perceive it with ``method`` (its own detector) and score it."""
     from omnid.core.classify import ClassifySettings
     from omnid.core.pipeline import PerceptionSettings, perceive
 
-    hits = scene_hits(scene, rig)
-    cap = render_hits(rig, hits, seed)
+    hits = scene_hits(scene, rig, laser)
+    cap = render_hits(rig, hits, seed, options)
     t0 = time.perf_counter()
     settings = PerceptionSettings(detection_method=None)  # each method with its own detector
     cloud = perceive(cap, calib, method, settings)  # type: ignore[arg-type]

@@ -26,9 +26,13 @@ follows the grating law:
 Real patterns are not perfect: each beam's direction carries a small random error
 (``jitter_rad``), a share of beams is missing (``missing_fraction``) or doubled by a close twin
 (``double_fraction``, ``double_offset_rad`` apart, dimmer), and the brightness falls off with the
-angle θ from the axis as exp(−(θ/envelope_rad)²) (the order envelope of the grating). The housing's aperture passes only beams within
-``field_rad`` = (half-angle along u, half-angle along v) of the axis, each measured in the
-(u, w) and (v, w) planes.
+angle θ from the axis as exp(−(θ/envelope_rad)²) (the envelope of one fibre's own diffraction,
+which weights the grating's orders; ``None``: all orders equally bright). The housing's aperture
+passes only beams within ``field_rad`` = (half-angle along u, half-angle along v) of the axis,
+each measured in the (u, w) and (v, w) planes.
+
+Which parameters are plausible, and why the ranges of :class:`LaserSpread` are what they are, is
+in docs/laser.md.
 """
 
 from __future__ import annotations
@@ -71,6 +75,12 @@ class LaserRays:
     def __len__(self) -> int:
         return len(self.directions)
 
+    def slopes(self) -> NDArray[np.float64]:
+        """(N, 2) each beam's (ΔX/ΔZ, ΔY/ΔZ): a dot ΔZ below the source lies at
+        origin + ΔZ·(slope_x, slope_y, 1) (for a source at the rig origin, the old lattice's
+        slopes X/Z, Y/Z)."""
+        return self.directions[:, :2] / self.directions[:, 2:3]
+
     def on_plane(self, depth_mm: float) -> NDArray[np.float64]:
         """Dots (N, 3) mm the beams make on a horizontal plane ``depth_mm`` below the mirrors
         (NaN for a plane the beam cannot reach: at or above the source)."""
@@ -96,7 +106,7 @@ class LaserProjector:
     orders_v: tuple[int, int] = (-14, 14)  # inclusive range of n
     field_rad: tuple[float, float] = (math.radians(25.0), math.radians(48.0))  # aperture
     skew_rad: float = math.radians(0.5)
-    envelope_rad: float = math.radians(45.0)  # brightness exp(−(θ/envelope)²); inf = flat
+    envelope_rad: float | None = math.radians(45.0)  # brightness exp(−(θ/envelope)²); None: flat
     missing_fraction: float = 0.01
     double_fraction: float = 0.005
     double_offset_rad: float = 0.006  # angle between a doubled beam and its twin
@@ -121,7 +131,8 @@ class LaserProjector:
             require(int(lo) <= int(hi) and hi - lo <= 400, name, "must be (low, high), low ≤ high")
         fu, fv = self.field_rad
         require(0 < fu < math.pi / 2 and 0 < fv < math.pi / 2, "field_rad", "must be in (0, 90°)")
-        require(self.envelope_rad > 0, "envelope_rad", "must be positive")
+        env = self.envelope_rad
+        require(env is None or (math.isfinite(env) and env > 0), "envelope_rad", "must be > 0")
         for name in ("missing_fraction", "double_fraction"):
             require(0 <= getattr(self, name) < 0.5, name, "must be in [0, 0.5)")
         require(0 <= self.double_offset_rad < 0.05, "double_offset_rad", "must be in [0, 0.05)")
@@ -176,14 +187,15 @@ def _rays(p: LaserProjector) -> LaserRays:
     d_beam = d_beam / np.linalg.norm(d_beam, axis=1, keepdims=True)
     # The grating is not perfect: every beam is off by a small random angle (small-angle
     # rotation: add a perpendicular offset and renormalise).
-    d_beam[:, :2] += rng.normal(0.0, p.jitter_rad, (len(d_beam), 2))
-    d_beam /= np.linalg.norm(d_beam, axis=1, keepdims=True)
+    jitter = rng.normal(0.0, p.jitter_rad, (len(d_beam), 2))
+    if p.jitter_rad > 0:
+        d_beam[:, :2] += jitter
+        d_beam /= np.linalg.norm(d_beam, axis=1, keepdims=True)
     theta = np.arccos(np.clip(d_beam[:, 2], -1.0, 1.0))
-    brightness = (
-        np.exp(-((theta / p.envelope_rad) ** 2))
-        if math.isfinite(p.envelope_rad)
-        else (np.ones(len(theta)))
-    )
+    if p.envelope_rad is None:
+        brightness = np.ones(len(theta))
+    else:
+        brightness = np.exp(-((theta / p.envelope_rad) ** 2))
     inside = (np.abs(np.arctan2(d_beam[:, 0], d_beam[:, 2])) <= p.field_rad[0]) & (
         np.abs(np.arctan2(d_beam[:, 1], d_beam[:, 2])) <= p.field_rad[1]
     )
@@ -259,7 +271,7 @@ def ideal_lattice(
         orders_v=(-round(half), round(half)),
         field_rad=(math.radians(89.0), math.radians(89.0)),
         skew_rad=0.0,
-        envelope_rad=math.inf,
+        envelope_rad=None,
         missing_fraction=0.0,
         double_fraction=0.0,
         jitter_rad=0.0,
@@ -287,7 +299,7 @@ class LaserSpread:
     field_u_rad: tuple[float, float] = (math.radians(22.0), math.radians(28.0))
     field_v_rad: tuple[float, float] = (math.radians(42.0), math.radians(52.0))
     skew_rad: float = math.radians(2.0)
-    envelope_rad: tuple[float, float] = (math.radians(30.0), math.radians(70.0))
+    envelope_rad: tuple[float, float] = (math.radians(40.0), math.radians(90.0))
     missing_fraction: tuple[float, float] = (0.0, 0.03)
     double_fraction: tuple[float, float] = (0.0, 0.02)
     double_offset_rad: tuple[float, float] = (0.003, 0.012)

@@ -26,16 +26,25 @@ log = logging.getLogger(__name__)
 def make_core(
     rig_x_offset_mm: float = 300.0, joystick: bool = False, tilt: bool | None = None
 ) -> Any:
-    """The daemon's ``ControlCore`` with its default configuration (``etc/omnid.yaml``
-    defaults), told where the simulated rig sits on the chair. ``joystick``: the rider has a
-    joystick (``rider.joystick.enabled``); ``tilt``: and the head-tilt sensor (default: only
-    when there is no joystick — a silent enabled source would stop the chair)."""
+    """The daemon's ``ControlCore`` with the shipped configuration (``etc/omnid.yaml`` = the
+    built-in defaults) except for what a scripted rider cannot do: hold the head still for the
+    neutral-pose calibration at start (``rider.tilt.neutral_calibration_s: 0``: the scripted
+    head's neutral is level) and release a command after a fault (``control.rearm_after_fault:
+    false``: the scripts hold their command through faults). Told where the simulated rig sits
+    on the chair. ``joystick``: the rider has a joystick (``rider.joystick.enabled``); ``tilt``:
+    and the head-tilt sensor (default: only when there is no joystick — a silent enabled source
+    would stop the chair)."""
     from omnid.daemon.config import OmnidConfig
     from omnid.daemon.core import ControlCore
 
     config = OmnidConfig()
     config = dataclasses.replace(
         config,
+        control=dataclasses.replace(config.control, rearm_after_fault=False),
+        rider=dataclasses.replace(
+            config.rider,
+            tilt=dataclasses.replace(config.rider.tilt, neutral_calibration_s=0.0),
+        ),
         perception=dataclasses.replace(config.perception, rig_x_offset_mm=rig_x_offset_mm),
     )
     if tilt is None:
@@ -87,11 +96,24 @@ def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int
             flush=True,
         )
 
+    recording = None
+    if getattr(args, "record", None) or getattr(args, "view", None):
+        from omnid.record.session import SimRecording
+
+        recording = SimRecording(controller, args.record, args.view, pace=bool(args.view))
+        controller = recording.core
     settings = SimSettings(perception=args.perception, seed=args.seed)
     sim = Simulator(course, controller, settings=settings, rider=rider, progress=progress)
+    if recording is not None:
+        recording.attach(sim)
     if not args.quiet:
         print(f"{title}: {args.duration_s:.0f} s in course '{course.name}'", flush=True)
-    result = sim.run(args.duration_s)
+    try:
+        result = sim.run(args.duration_s)
+    finally:
+        if recording is not None:
+            for segment in recording.close():
+                print(f"recording: {segment}", flush=True)
     path = write_report(
         args.out, course, result, title, notes, sim.chair.settings, story=rider is not None
     )
@@ -119,11 +141,10 @@ def write_floor_capture(directory: str, seed: int = 0) -> None:
 
     h = RigMount().height_mm
     rig = misaligned_rig(h)
-
     out = Path(directory)
     try:
         extras = write_installation(rig, out, seed=seed)
-        for name in ("mask1", "base1", "mask2", "base2"):  # the floor also as plain names
+        for name in ("mask1", "base1", "mask2", "base2"):  # the floor under the plain names
             (out / f"floor_{name}.png").replace(out / f"{name}.png")
     except OSError as exc:
         raise OmnidError(f"--floor-capture {directory}: cannot write ({exc})") from exc
@@ -132,78 +153,42 @@ def write_floor_capture(directory: str, seed: int = 0) -> None:
 
 
 def serve_real_time(args: argparse.Namespace, controller: Any) -> int:
-    """Serve the simulated chair to an ``omnid run`` in another process, in real time."""
+    """Serve the simulated chair to an ``omnid run`` in another process, in real time, until
+    SIGTERM/Ctrl-C (or ``--duration-s``): :class:`omnid.sim.bench.RealTimeChair`."""
     if controller is not None:
         raise OmnidError("--serve runs the chair for an external daemon; --drive cannot be used")
-    from omnid.devices.emulators.control_unit import ControlUnitEmulator
-    from omnid.sim.course import get_course
-    from omnid.sim.frame_server import FrameServer
-    from omnid.sim.simulator import SimSettings, Simulator
-
-    course = get_course(args.course)
-    sim = Simulator(course, None, settings=SimSettings(seed=args.seed))
-    emu = ControlUnitEmulator(plant=sim.chair)
-    t0 = time.monotonic()
-
-    def frame() -> Any:
-        laser = bool(emu.laser_on)  # advances the plant to now under the emulator's lock
-        sim.now_s = time.monotonic() - t0
-        cap = sim.render(laser_on=laser)
-        return sim.now_s, cap.base1, cap.base2
-
     import signal
 
-    import numpy as np
+    from omnid.sim.bench import RealTimeChair
 
-    from omnid.sim.simulator import _clearance, _perimeter
-
+    chair = RealTimeChair(
+        args.course, args.seed, frames_path=args.serve, cu_link=getattr(args, "link", None)
+    )
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
-    boxes = np.array(
-        [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in course.world.boxes]
-    ).reshape(-1, 4)
-    drops = np.array(
-        [(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm) for d in course.world.dropoffs]
-    ).reshape(-1, 4)
-    pty = emu.open_pty()
-    print(f"control unit: {pty}", flush=True)
+    chair.start(tilt=False)
+    print(f"control unit: {chair.cu_path}", flush=True)
     print(f"cameras: sim+unix://{args.serve}", flush=True)
-    deadline = t0 + args.duration_s
-    closest = float("inf")
-    contacts = 0
-    last_print = t0
+    duration = getattr(args, "duration_s", None)
+    deadline = None if duration is None else chair.t0 + duration
+    last_print = chair.t0
     try:
-        with FrameServer(args.serve, frame):
-            while time.monotonic() < deadline and not stop:
-                time.sleep(0.02)
-                _ = emu.clocks  # advance the plant to now
-                chair = sim.chair
-                supports = np.array(list(chair.support_points().values()))
-                closest = min(
-                    closest, _clearance(_perimeter(chair), boxes), _clearance(supports, drops)
-                )
-                for c in chair.contacts(course.world):
-                    contacts += 1
-                    print(f"t={time.monotonic() - t0:.2f} s: {c.kind} ({c.part})", flush=True)
-                    stop.append(True)
-                now = time.monotonic()
-                if now - last_print >= 0.5:
-                    last_print = now
-                    x, y, th = chair.pose
-                    print(
-                        f"t={now - t0:.2f} s chair ({x:.0f}, {y:.0f}) mm {np.degrees(th):.1f}° "
-                        f"speed {chair.left_speed_mm_s:.0f}/{chair.right_speed_mm_s:.0f} mm/s "
-                        f"laser {'on' if emu.laser_on else 'off'}",
-                        flush=True,
-                    )
+        while (deadline is None or time.monotonic() < deadline) and not stop:
+            time.sleep(0.02)
+            for text in chair.poll():
+                print(f"t={time.monotonic() - chair.t0:.2f} s: {text}", flush=True)
+                stop.append(True)
+            if time.monotonic() - last_print >= 0.5:
+                last_print = time.monotonic()
+                print(chair.status_line(), flush=True)
     except KeyboardInterrupt:
         pass
     finally:
-        emu.close()
-    x, y, _ = sim.chair.pose
+        chair.close()
+    x, y, _ = chair.sim.chair.pose
     print(
-        f"result: contacts {contacts}, closest approach {closest:.0f} mm, "
+        f"result: contacts {len(chair.contacts)}, closest approach {chair.closest_mm:.0f} mm, "
         f"chair at ({x:.0f}, {y:.0f}) mm",
         flush=True,
     )
-    return 1 if contacts else 0
+    return 1 if chair.contacts else 0

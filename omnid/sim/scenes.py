@@ -15,6 +15,10 @@ into world coordinates (x = X + x_offset, y = −Y) by :func:`rig_rect`.
 - ``dropoff``: the floor falls 200 mm (a kerb / the first step of a stair) 1000 mm ahead.
 - ``passage``: two obstacles leaving a 900 mm wide passage straight ahead.
 - ``floor``: nothing but the floor.
+
+For the installer's extra captures (SPEC §6: "a wall or a box ahead, of unknown size and
+place") :func:`extra_scene` also draws ``wall`` and ``box`` scenes at random
+(:func:`random_wall`, :func:`random_box`); ``random`` is either.
 """
 
 from __future__ import annotations
@@ -23,8 +27,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 
+import numpy as np
+
+from omnid.core.geometry import StereoRig
 from omnid.errors import InputError
-from omnid.sim.world import Box, DropOff, RigMount, World
+from omnid.sim.world import Box, DropOff, Laser, LaserHits, RigMount, World, cast_laser
 
 #: Table 7.4: depths of the horizontal planes below the mirrors, mm.
 HORIZONTAL_PLANE_DEPTHS_MM = (680.0, 800.0, 930.0, 1100.0)
@@ -116,6 +123,76 @@ def passage(mount: RigMount | None = None, width_mm: float = 900.0) -> Scene:
         _box(700, 1300, half, half + 400, 400.0, m),
     )
     return Scene("passage", World(boxes), m, description=f"passage {width_mm:g} mm wide")
+
+
+def random_wall(rng: np.random.Generator, mount: RigMount | None = None) -> Scene:
+    """A wall facing the chair 500–1500 mm ahead, 1.2–3 m wide (its middle up to 400 mm to
+    either side), 0.6–1.2 m high, turned by up to ±15° about the vertical."""
+    m = mount or RigMount()
+    x = float(rng.uniform(500.0, 1500.0))
+    width = float(rng.uniform(1200.0, 3000.0))
+    mid = float(rng.uniform(-400.0, 400.0))
+    height = float(rng.uniform(600.0, 1200.0))
+    turn = float(rng.uniform(-15.0, 15.0))
+    # A turned wall is a staircase of thin boxes (the world is axis-aligned), 50 mm a step.
+    steps = max(int(width // 50.0), 1)
+    ys = mid - width / 2.0 + (np.arange(steps) + 0.5) * (width / steps)
+    xs = x + (ys - mid) * np.tan(np.radians(turn))
+    half = width / steps / 2.0
+    boxes = tuple(
+        _box(float(xk), float(xk) + 30.0, float(yk) - half, float(yk) + half, height, m)
+        for xk, yk in zip(xs, ys, strict=True)
+    )
+    return Scene(
+        "wall",
+        World(boxes),
+        m,
+        description=f"wall {x:.0f} mm ahead, {width:.0f} mm wide, turned {turn:+.1f}°",
+    )
+
+
+def random_box(rng: np.random.Generator, mount: RigMount | None = None) -> Scene:
+    """A box 600–1300 mm ahead (near side), 300–900 mm deep, 300–1000 mm wide (its middle up
+    to 400 mm to either side), 100–500 mm high."""
+    m = mount or RigMount()
+    x = float(rng.uniform(600.0, 1300.0))
+    depth = float(rng.uniform(300.0, 900.0))
+    width = float(rng.uniform(300.0, 1000.0))
+    mid = float(rng.uniform(-400.0, 400.0))
+    height = float(rng.uniform(100.0, 500.0))
+    box = _box(x, x + depth, mid - width / 2.0, mid + width / 2.0, height, m)
+    return Scene(
+        "box",
+        World((box,)),
+        m,
+        description=f"box {x:.0f} mm ahead, {width:.0f} x {depth:.0f} x {height:.0f} mm",
+    )
+
+
+#: The names :func:`extra_scene` draws at random (besides every named scene).
+RANDOM_EXTRAS = ("wall", "box", "random")
+
+
+def extra_scene(name: str, rng: np.random.Generator, mount: RigMount | None = None) -> Scene:
+    """A scene for an installer's extra capture: ``wall`` or ``box`` drawn with ``rng``,
+    ``random`` (either), or any named scene of :func:`get_scene`."""
+    if name == "random":
+        name = "wall" if rng.uniform() < 0.5 else "box"
+    if name == "wall":
+        return random_wall(rng, mount)
+    if name == "box":
+        return random_box(rng, mount)
+    return get_scene(name)
+
+
+def floor_hits(rig: StereoRig, laser: Laser, mount: RigMount | None = None) -> LaserHits:
+    """The laser's dots on the empty floor at the rig's floor depth (the installer's capture
+    for calibration), the chair at the origin of a ``mount`` of that height."""
+    m = mount or RigMount()
+    if m.height_mm != rig.floor_depth_mm:
+        m = RigMount(x_offset_mm=m.x_offset_mm, height_mm=rig.floor_depth_mm)
+    sc = floor(m)
+    return cast_laser(sc.world, sc.pose, sc.mount, laser, rig)
 
 
 def _registry() -> dict[str, Callable[[], Scene]]:

@@ -18,7 +18,6 @@ vectorised over rays (slab tests against all boxes at once).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,7 +27,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from omnid.config import require
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.triangulate import TriangulationMethod
 from omnid.core.types import PointClass, PointCloud
 from omnid.sim.laser import LaserProjector, LaserRays
@@ -152,7 +150,7 @@ class RigMount:
 
 @dataclass(frozen=True)
 class LaserHits:
-    """Where the laser dots fall, one row per ray of the pattern (row-major like its slopes).
+    """Where the laser dots fall, one row per beam of the laser (in its beam order).
 
     xyz         (N, 3) dot positions in the rig frame (SPEC §2), mm
     visible1    (N,) inside mirror 1's disk and not occluded between the dot and mirror 1
@@ -161,6 +159,8 @@ class LaserHits:
                 floor or a pit wall)
     pixels      (N, 4) ideal image positions r1, c1, r2, c2 of the dots, px (NaN where none)
     brightness  (N,) relative power of each beam (the grating's order envelope), 1 on its axis
+    normal      (N, 3) unit normal of the surface each dot lies on, rig frame, pointing to the
+                side the beam came from (up, (0, 0, −1), on the floor and box tops)
     """
 
     xyz: NDArray[np.float64]
@@ -168,11 +168,15 @@ class LaserHits:
     visible2: NDArray[np.bool_]
     truth: NDArray[np.uint8]
     pixels: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
-    brightness: NDArray[np.float64] | None = None
+    brightness: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    normal: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
     def __post_init__(self) -> None:
-        if self.brightness is None:
-            object.__setattr__(self, "brightness", np.ones(len(self.xyz)))
+        n = len(self.xyz)
+        if len(self.brightness) != n:
+            object.__setattr__(self, "brightness", np.ones(n))
+        if len(self.normal) != n:
+            object.__setattr__(self, "normal", np.tile([0.0, 0.0, -1.0], (n, 1)))
 
     @property
     def visible(self) -> NDArray[np.bool_]:
@@ -251,29 +255,12 @@ def _blocked(
     return np.any(hi - lo > _GRAZE, axis=0)
 
 
-Laser = LaserProjector | LaserRays | DotPattern
-
-
-@functools.lru_cache(maxsize=8)
-def _pattern_rays(pattern: DotPattern) -> LaserRays:
-    """The old slope lattice as beams from the rig origin (computed once per pattern)."""
-    d = pattern.directions()
-    n = len(d)
-    rays = LaserRays(
-        np.zeros(3), d, np.ones(n), np.zeros((n, 2), dtype=np.int64), np.full(n, -1, np.int64)
-    )
-    for arr in (rays.origin_mm, rays.directions, rays.brightness):
-        arr.setflags(write=False)
-    return rays
+Laser = LaserProjector | LaserRays
 
 
 def laser_rays(laser: Laser) -> LaserRays:
-    """The beams of any laser description: a projector, its rays, or the old ``DotPattern``."""
-    if isinstance(laser, LaserRays):
-        return laser
-    if isinstance(laser, LaserProjector):
-        return laser.rays()
-    return _pattern_rays(laser)
+    """The beams of a laser description: a projector or its rays."""
+    return laser if isinstance(laser, LaserRays) else laser.rays()
 
 
 def cast_laser(
@@ -331,6 +318,8 @@ def cast_laser(
 
     hit_w = o + t[:, None] * d
     xyz = world_to_rig(hit_w, (px, py, th), mount)
+    normal_w = _face_normals(hit_w, d, truth, boxes, pits)
+    normal = _directions_to_rig(normal_w, th)
     pixels = rig.project(xyz)
 
     mirrors_rig = [np.array([[0.0, rig.cam1.y_mm, 0.0]]), np.array([[0.0, rig.cam2.y_mm, 0.0]])]
@@ -344,7 +333,53 @@ def cast_laser(
         seen &= ~_blocked(hit_w, end, boxes)
         seen &= ~_under_ground(hit_w, end, pits)
         vis.append(seen)
-    return LaserHits(xyz, vis[0], vis[1], truth, pixels, np.asarray(rays.brightness, np.float64))
+    return LaserHits(
+        xyz, vis[0], vis[1], truth, pixels, np.asarray(rays.brightness, np.float64), normal
+    )
+
+
+def _face_normals(
+    hit_w: NDArray[np.float64],
+    d: NDArray[np.float64],
+    truth: NDArray[np.uint8],
+    boxes: NDArray[np.float64],
+    pits: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """World-frame unit normals (N, 3) of the faces the rays ``d`` stopped on at ``hit_w``.
+
+    Every face is axis-aligned; the face is the box (or pit) face nearest the hit point, and
+    its normal points against the ray (out of a box, into a pit's open volume).
+    """
+    normal = np.zeros((len(hit_w), 3))
+    normal[:, 2] = 1.0  # the floor and every horizontal face the rays come down on
+    for code, solids in ((PointClass.OBSTACLE, boxes), (PointClass.DROPOFF, pits)):
+        idx = np.flatnonzero(truth == code)
+        if len(idx) == 0 or len(solids) == 0:
+            continue
+        q = hit_w[idx]
+        # Distance of each hit to each face of each solid (S, n, 6); the nearest face wins.
+        gaps = np.concatenate(
+            [np.abs(q[None] - solids[:, None, 0]), np.abs(q[None] - solids[:, None, 1])], axis=2
+        )
+        inside = np.all(
+            (q[None] >= solids[:, None, 0] - 1e-6) & (q[None] <= solids[:, None, 1] + 1e-6),
+            axis=2,
+        )
+        gaps = np.where(inside[:, :, None], gaps, np.inf).reshape(len(solids), len(idx), 6)
+        flat = gaps.transpose(1, 0, 2).reshape(len(idx), -1).argmin(axis=1)
+        axis = flat % 6 % 3
+        n_face = np.zeros((len(idx), 3))
+        n_face[np.arange(len(idx)), axis] = -np.sign(d[idx, axis])
+        normal[idx] = n_face
+    return normal
+
+
+def _directions_to_rig(d_world: NDArray[np.float64], theta_rad: float) -> NDArray[np.float64]:
+    """World-frame directions (x, y, h) → rig frame (X, Y, Z) for a chair heading
+    ``theta_rad`` (the inverse of :func:`_directions_to_world`)."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    dx, dy = d_world[:, 0], d_world[:, 1]
+    return np.column_stack([c * dx + s * dy, -(-s * dx + c * dy), -d_world[:, 2]])
 
 
 def _under_ground(

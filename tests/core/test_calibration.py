@@ -13,7 +13,7 @@ from match_helpers import misaligned_rig
 from omnid.core.calibration import Calibration, calibrate_from_capture, fit_mirror_disk
 from omnid.core.geometry import StereoRig
 from omnid.core.matching import fit_thesis_polynomials, predict_thesis
-from omnid.errors import CalibrationError, ConfigError
+from omnid.errors import CalibrationError, ConfigError, InputError
 from omnid.experiments import rigs as ev
 from omnid.sim.installation import installation_captures, render_world
 from omnid.sim.laser import LaserProjector
@@ -142,7 +142,7 @@ def test_load_names_the_bad_key(calib: Calibration, tmp_path: Path, edit, key: s
 def test_failed_save_leaves_old_file_intact(calib: Calibration, tmp_path: Path) -> None:
     target = tmp_path / "taken"
     target.mkdir()  # a directory cannot be replaced by a file
-    with pytest.raises(OSError):
+    with pytest.raises(InputError, match="taken: cannot write"):
         calib.save(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
 

@@ -10,12 +10,12 @@ import pytest
 from omnid.config import from_mapping
 from omnid.core.detect import DetectionParams, detect_dots
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.errors import ConfigError, InputError
-from omnid.sim.render import RenderOptions, draw_spots, render_capture, visible_truth
+from omnid.sim.laser import ideal_lattice
+from omnid.sim.render import RenderOptions, SpotModel, draw_spots, render_capture, visible_truth
 
 RIG = StereoRig.nominal()
-DOTS = DotPattern(rows=30, cols=34, step_slope=0.07).on_plane(RIG.floor_depth_mm)  # ~870 in disk
+DOTS = ideal_lattice(30, 35, 0.07, 0.28).on_plane(RIG.floor_depth_mm)  # ~870 in disk, 7.6 px apart
 EDGE_MARGIN_PX = 4.0  # dots this close to the disk edge lose light to it: not scored
 
 
@@ -37,7 +37,7 @@ def _run(options: RenderOptions, seed: int = 3):
 
 
 # Realistic sensor: read + shot noise, 3 % flicker between mask and base, gray or BGR.
-SENSOR = {"halo_fraction": 0.0, "ghost_fraction": 0.0}
+SENSOR = {"spots": SpotModel()}
 
 
 @pytest.mark.parametrize("color", [False, True], ids=["gray", "bgr"])
@@ -66,7 +66,7 @@ def test_halos_and_ghosts_do_not_make_false_dots():
 
 
 def test_strength_is_the_dot_brightness():
-    found, _ = _run(RenderOptions(spot_peak_jitter=0.0, noise_sigma=1.0))
+    found, _ = _run(RenderOptions(SpotModel(peak_jitter=0.0), noise_sigma=1.0))
     # Smoothed peak of a 150-gray dot of sigma ≈ 1.3 px: clearly above noise, below the peak.
     assert 60 < np.median(found[:, 2]) < 150
 

@@ -8,7 +8,7 @@ from thesis_oracle import oracle_detect
 
 from omnid.core.detect import RING_MASKS, DetectionParams, detect_dots
 from omnid.core.geometry import MirrorCamera
-from omnid.sim.render import RenderOptions, render_camera_pair
+from omnid.sim.render import RenderOptions, SpotModel, render_camera_pair
 
 SHAPE = (72, 96)  # small, so the slow oracle stays well under a second per image
 
@@ -48,13 +48,15 @@ CASES = [
     (
         "strong halos, texture, flicker",
         3,
-        RenderOptions.realistic(halo_fraction=0.2, flicker=0.1, background_texture=60.0),
+        RenderOptions.realistic(
+            spots=SpotModel.realistic(halo_fraction=0.2), flicker=0.1, background_texture=60.0
+        ),
         DetectionParams(),
     ),
     (
         "looser thresholds",
         4,
-        RenderOptions.realistic(noise_sigma=6.0, halo_fraction=0.15),
+        RenderOptions.realistic(noise_sigma=6.0, spots=SpotModel.realistic(halo_fraction=0.15)),
         DetectionParams(block_coefficient=0.8, min_peak_gray=5, e4_gray=0.0, ring_e1_gray=0.0),
     ),
     (

@@ -2,32 +2,20 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
+import dataclasses
+import time
 from pathlib import Path
+from typing import Literal, get_args, get_origin, get_type_hints
 
 import pytest
 import yaml
 
-from omnid.config import to_mapping
+from omnid.config import MAX_FILE_BYTES, from_mapping, setting_range, to_mapping
 from omnid.daemon.config import ConfigHolder, OmnidConfig, load_config
 from omnid.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ROOT / "etc" / "omnid.yaml"
-DAEMON_SECTIONS = (
-    "control",
-    "rider",
-    "safety",
-    "motion",
-    "perception",
-    "freespace",
-    "control_unit",
-    "camera",
-    "teleop",
-    "tilt_sensor",
-    "joystick_device",
-    "service",
-)
 
 
 def keys(tree, prefix=""):
@@ -39,30 +27,150 @@ def keys(tree, prefix=""):
     return out
 
 
-def test_shipped_file_is_valid_and_lists_every_daemon_key():
-    cfg = load_config(SHIPPED)
-    # the file documents the defaults, except the devices' stable udev names, the neutral-pose
-    # calibration at start and re-arming after a fault (on for a real rider; off for
-    # clock-injected users)
-    assert cfg.control_unit.port == "/dev/omnid-control-unit"
-    assert cfg.camera.url == "v4l2:///dev/omnid-camera1,/dev/omnid-camera2"
-    assert cfg.rider.tilt.neutral_calibration_s == 3.0
-    d = OmnidConfig()
-    assert (
-        replace(
-            cfg,
-            control_unit=replace(cfg.control_unit, port=d.control_unit.port),
-            camera=replace(cfg.camera, url=d.camera.url),
-            rider=replace(cfg.rider, tilt=d.rider.tilt),
-            control=replace(cfg.control, rearm_after_fault=False),
-        )
-        == d
+def test_shipped_file_is_the_built_in_defaults_and_lists_every_key(tmp_path):
+    """One configuration: the shipped file, the dataclass defaults, an empty file and a
+    comment-only file are the same tree; every key of the tree is written in the shipped file."""
+    shipped = load_config(SHIPPED)
+    assert shipped == OmnidConfig()
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    comments = tmp_path / "comments.yaml"
+    comments.write_text("# nothing set\n\n# at all\n")
+    assert load_config(empty) == shipped and load_config(comments) == shipped
+    written = keys(yaml.safe_load(SHIPPED.read_text()))
+    defaults = keys(to_mapping(OmnidConfig()))
+    assert defaults == written
+
+
+def _numeric(tp) -> bool:
+    if tp in (int, float):
+        return True
+    args = [a for a in get_args(tp) if a is not type(None) and a is not Ellipsis]
+    return bool(args) and get_origin(tp) is not Literal and all(_numeric(a) for a in args)
+
+
+def _fields(cls, prefix=""):
+    hints = get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        inner = [a for a in get_args(tp) if a is not type(None)]
+        sub = tp if dataclasses.is_dataclass(tp) else (inner[0] if len(inner) == 1 else None)
+        if sub is not None and dataclasses.is_dataclass(sub):
+            yield from _fields(sub, prefix + f.name + ".")
+        else:
+            yield prefix + f.name, f, tp
+
+
+NUMERIC = [(k, f) for k, f, tp in _fields(OmnidConfig) if _numeric(tp)]
+
+
+def test_every_numeric_key_has_a_range_holding_its_default():
+    missing = [k for k, f in NUMERIC if setting_range(f) is None]
+    assert not missing, f"numeric keys without setting(default, low, high): {missing}"
+    assert len(NUMERIC) > 100
+    for k, f in NUMERIC:
+        low, high = setting_range(f)
+        d = f.default
+        for v in d if isinstance(d, tuple) else (d,):
+            assert v is None or low <= v <= high, k
+
+
+def _tree(key: str, value) -> dict:
+    out: dict = {}
+    node = out
+    parts = key.split(".")
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+    node[parts[-1]] = value
+    return out
+
+
+@pytest.mark.parametrize(("key", "f"), NUMERIC, ids=[k for k, _ in NUMERIC])
+def test_a_value_beyond_the_range_is_refused_naming_the_key(key, f):
+    low, high = setting_range(f)
+    default = f.default
+    is_int = isinstance(default, int) or (
+        isinstance(default, tuple) and isinstance(default[0], int)
     )
-    assert cfg.control.rearm_after_fault
-    assert replace(cfg.rider.tilt, neutral_calibration_s=0.0) == d.rider.tilt
-    shipped = keys(yaml.safe_load(SHIPPED.read_text()))
-    defaults = keys({s: to_mapping(getattr(OmnidConfig(), s)) for s in DAEMON_SECTIONS})
-    assert defaults <= shipped
+    step = 1 if is_int else max(abs(high - low) * 1e-3, 1e-6)
+    owner: object = OmnidConfig()
+    for part in key.split(".")[:-1]:
+        cls = get_type_hints(type(owner))[part]
+        owner = getattr(owner, part) or next(a for a in get_args(cls) if a is not type(None))()
+    for bad in (high + step, low - step):
+        value = [bad] * len(default) if isinstance(default, tuple) else bad
+        with pytest.raises(ConfigError) as err:  # read from a file
+            from_mapping(OmnidConfig, _tree(key, value))
+        assert str(err.value).startswith(key), (key, bad, str(err.value))
+        with pytest.raises(ConfigError) as err:  # built in code
+            dataclasses.replace(
+                owner, **{f.name: tuple(value) if isinstance(default, tuple) else value}
+            )
+        assert str(err.value).startswith(f.name), (key, bad, str(err.value))
+
+
+def test_exponents_without_sign_are_numbers_and_huge_values_are_refused(tmp_path):
+    p = tmp_path / "omnid.yaml"
+    for text in ("1.0e9", "1.0e+9", "1e9", "1.0e+30"):
+        p.write_text(f"safety:\n  perception_timeout_s: {text}\n")
+        with pytest.raises(ConfigError, match=r"safety\.perception_timeout_s: .* is outside"):
+            load_config(p)
+    p.write_text("motion:\n  max_speed_mm_s: 2.0e2\n")
+    assert load_config(p).motion.max_speed_mm_s == 200.0
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        ("control:\n  rate_hz: 100\n  rate_hz: 50\n", "line 3: duplicate key 'rate_hz'"),
+        ("control:\n  rate_hz: 100\nsafety: {}\ncontrol: {}\n", "line 4: duplicate key 'control'"),
+        ("a: &a [1, 2]\ncontrol:\n  rate_hz: *a\n", "alias *a not allowed"),
+        ("control: " + "[" * 40 + "]" * 40 + "\n", "nested deeper than"),
+    ],
+)
+def test_duplicate_keys_aliases_and_deep_nesting_are_refused(tmp_path, text, words):
+    p = tmp_path / "omnid.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    assert str(p) in str(err.value) and words in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_an_alias_bomb_is_refused_at_once(tmp_path):
+    lines = ['a0: &a0 ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    for i in range(1, 9):
+        lines.append(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 9) + "]")
+    p = tmp_path / "bomb.yaml"
+    p.write_text("\n".join(lines) + "\ncontrol:\n  rate_hz: *a8\n")
+    assert p.stat().st_size < 1000
+    t0 = time.monotonic()
+    with pytest.raises(ConfigError, match="alias"):
+        load_config(p)
+    assert time.monotonic() - t0 < 5.0  # generous: refused on the first alias
+
+
+def test_encoding_errors_and_oversized_files_are_one_line_naming_the_file(tmp_path):
+    p = tmp_path / "latin1.yaml"
+    p.write_bytes("control:\n  rate_hz: 50 # Fu\xdf\n".encode("latin-1"))
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    assert str(err.value).startswith(f"{p}: not a text (YAML) file: byte 0xdf at offset 27 ")
+    big = tmp_path / "big.yaml"
+    big.write_text("# " + "x" * (MAX_FILE_BYTES + 10) + "\n")
+    with pytest.raises(ConfigError, match="larger than"):
+        load_config(big)
+
+
+def test_control_period_must_not_exceed_the_command_period(tmp_path):
+    p = tmp_path / "omnid.yaml"
+    p.write_text("control:\n  rate_hz: 25\n")
+    with pytest.raises(ConfigError, match="control.rate_hz"):
+        load_config(p)
+    p.write_text(
+        "control:\n  rate_hz: 25\ncontrol_unit:\n  command_period_s: 0.04\n  unit_watchdog_s: 0.25\n"
+    )
+    assert load_config(p).control.rate_hz == 25.0
 
 
 @pytest.mark.parametrize(
@@ -87,18 +195,18 @@ def test_errors_name_file_and_key(tmp_path, text, key):
 
 def test_reload_keeps_old_config_when_new_is_invalid(tmp_path):
     p = tmp_path / "omnid.yaml"
-    p.write_text("control:\n  rate_hz: 40\n")
+    p.write_text("control:\n  rate_hz: 100\n")
     holder = ConfigHolder(p)
-    assert holder.config.control.rate_hz == 40.0
-    p.write_text("control:\n  rate_hz: 40\n  typo: 1\n")
+    assert holder.config.control.rate_hz == 100.0
+    p.write_text("control:\n  rate_hz: 100\n  typo: 1\n")
     ok, why = holder.reload()
     assert not ok and "control.typo" in why
-    assert holder.config.control.rate_hz == 40.0
+    assert holder.config.control.rate_hz == 100.0
     p.write_text("control: [unclosed\n")
     assert holder.reload()[0] is False
-    p.write_text("control:\n  rate_hz: 25\n")
+    p.write_text("control:\n  rate_hz: 60\n")
     assert holder.reload() == (True, "reloaded")
-    assert holder.config.control.rate_hz == 25.0
+    assert holder.config.control.rate_hz == 60.0
 
 
 def test_missing_file_is_one_line_error(tmp_path):

@@ -20,7 +20,9 @@ DT = 0.02
 def make_core(**rider) -> tuple[ControlCore, RecordingMap]:
     cfg = OmnidConfig(
         rider=RiderSettings(
-            tilt=TiltSettings(dwell_s=0.1), joystick=JoystickSettings(enabled=False), **rider
+            tilt=TiltSettings(dwell_s=0.1, neutral_calibration_s=0.0),
+            joystick=JoystickSettings(enabled=False),
+            **rider,
         )
     )
     m = RecordingMap(cfg.freespace.grid)

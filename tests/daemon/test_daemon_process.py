@@ -89,11 +89,20 @@ def test_daemon_drives_through_pty_and_stops_on_sigterm(tmp_path: Path, emulator
         # the keyboard falls silent: its press expires, the chair stops
         assert wait_for(lambda: emu.applied_duty == (0.0, 0.0), 3.0)
 
-        # SIGHUP with a broken file: refused, daemon keeps running
-        cfg.write_text(cfg.read_text() + "control:\n  rate_hz: nope\n")
-        proc.send_signal(signal.SIGHUP)
-        time.sleep(0.3)
-        assert proc.poll() is None
+        # SIGHUP with a broken file: refused, daemon keeps running; READY=1 follows RELOADING=1
+        good = cfg.read_text()
+        for broken in (
+            (good + "control:\n  rate_hz: nope\n").encode(),
+            (good + "# caf\xe9\n").encode("latin-1"),
+        ):
+            cfg.write_bytes(broken)
+            proc.send_signal(signal.SIGHUP)
+            msgs = []
+            while not any(m.startswith("READY=1") for m in msgs):
+                msgs.append(notify.recv(4096).decode())
+            assert any(m.startswith("RELOADING=1") for m in msgs), msgs
+            assert "reload refused" in msgs[-1], msgs
+            assert proc.poll() is None
 
         # turning again, then SIGTERM: wheels to zero before exit
         assert wait_for(turning, 4.0, step_s=0.1)
@@ -104,12 +113,56 @@ def test_daemon_drives_through_pty_and_stops_on_sigterm(tmp_path: Path, emulator
         assert emu.applied_duty == (0.0, 0.0)
         err = proc.stderr.read() if proc.stderr else ""
         assert "reload refused" in err and "control.rate_hz" in err
+        assert "is not UTF-8" in err and "Traceback" not in err
         assert "wheels at zero" in err
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=5)
         notify.close()
+
+
+def test_check_lists_what_it_checked_and_refuses_what_run_refuses(tmp_path: Path):
+    """`run --check` runs the start-up checks of `run`: the shipped file (and an empty one,
+    which means the same) needs a calibration, so both are refused by both, in one line."""
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# defaults\n")
+    shipped = Path(__file__).resolve().parents[2] / "etc" / "omnid.yaml"
+    for cfg in (shipped, empty):
+        check = subprocess.run(
+            [sys.executable, "-m", "omnid.cli", "run", "--check", "--config", str(cfg)],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        assert check.returncode == 2, check.stdout
+        lines = check.stdout.splitlines()
+        listed = {line.split()[1].rstrip(":") for line in lines[:-1]}
+        assert {"perception.calibration_path", "control_unit.port", "camera.url"} <= listed
+        assert "teleop.socket_path" in listed and "tilt_sensor.port" in listed
+        assert lines[-1].startswith(f"{cfg}: refused")
+        run = subprocess.run(
+            [sys.executable, "-m", "omnid.cli", "run", "--config", str(cfg)],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        assert run.returncode == 2
+        assert run.stderr.strip().count("\n") == 0, run.stderr
+        assert "perception.calibration_path" in run.stderr and str(cfg) in run.stderr
+    ok = tmp_path / "ok.yaml"
+    ok.write_text(
+        f"perception:\n  enabled: false\ncontrol_unit:\n  port: loop://\n"
+        f"teleop:\n  socket_path: {tmp_path / 'teleop.sock'}\nrider:\n  tilt:\n"
+        "    enabled: false\n"
+    )
+    check = subprocess.run(
+        [sys.executable, "-m", "omnid.cli", "run", "--check", "--config", str(ok)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert check.returncode == 0 and check.stdout.splitlines()[-1].startswith(f"{ok}: ok")
 
 
 def test_bad_config_is_one_line_error(tmp_path: Path):

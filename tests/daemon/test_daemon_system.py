@@ -64,8 +64,8 @@ def hold(gs: Gs311Emulator, angles: tuple[float, float]) -> None:
 
 @pytest.fixture(scope="module")
 def floor_frames(tmp_path_factory) -> tuple[Path, object]:
-    """The installer's captures (empty floor, a box, a wall) seen by the nominal rig, and
-    ``omnid calibrate`` run on them (subprocess)."""
+    """The installer's captures (empty floor, a box, a wall) seen by the nominal rig with the
+    simulator's laser, and ``omnid calibrate`` run on them (subprocess)."""
     d = tmp_path_factory.mktemp("floor")
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
     extras = write_installation(rig, d, seed=3)

@@ -1,0 +1,88 @@
+"""``SimSettings``: the rates and models of one simulated run (s, mm)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from omnid.config import require
+
+PerceptionMode = Literal["truth", "pipeline", "off"]
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Rates and models of a simulated run (s, mm).
+
+    ``perception``: ``truth`` (the cast laser dots with their true classes and Gaussian noise,
+    fast), ``pipeline`` (rendered frames through ``omnid.core.pipeline.perceive`` with a
+    calibration made from a rendered floor capture) or ``off`` (empty clouds). The capture
+    cycle itself is always the daemon's (:mod:`omnid.daemon.capture`); the settings here model
+    the hardware it talks to (frame timing, camera timeout) and, when None, take the cycle's
+    own settings from the controller's configuration.
+    """
+
+    physics_dt_s: float = 0.01
+    control_period_s: float | None = None  # None: the controller's control.rate_hz (else 0.05)
+    tilt_period_s: float = 0.01
+    perception_period_s: float | None = None  # None: the controller's perception.period_s (0.2)
+    perception_latency_s: float = 0.1  # at least this long from capture to result
+    perception: PerceptionMode = "truth"
+    control_unit: Literal["emulator", "direct"] = "emulator"
+    truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
+    watchdog_s: float = 0.25  # the control unit stops the motors after this silence
+    stop_on_contact: bool = True  # end the run at the first collision or fall
+    record_period_s: float = 0.05
+    seed: int = 0
+    rig: Literal["misaligned", "nominal"] = "misaligned"  # the cameras as installed
+    tilt_link: Literal["emulator", "direct"] = "emulator"  # head script through the GS311 codec
+    tilt_noise_deg: float = 0.0  # Gaussian noise of the emulated sensor (head jitter)
+    frame_interval_s: float = 1.0 / 30.0  # camera frame period: a flushed read waits this long
+    laser_timeout_s: float | None = None  # None: the controller's perception.laser_timeout_s
+    frame_timeout_s: float = 1.0  # the camera source gives up on a frame after this long
+    record_seen: bool = True  # keep every non-floor point perception reported (off for soaks)
+    story_rest_s: float = 1.0  # a reactive rider's run ends this long after its story ended
+
+    def __post_init__(self) -> None:
+        for name in (
+            "physics_dt_s",
+            "control_period_s",
+            "tilt_period_s",
+            "perception_period_s",
+            "watchdog_s",
+            "record_period_s",
+            "laser_timeout_s",
+        ):
+            v = getattr(self, name)
+            require(v is None or v > 0, name, "must be positive")
+        require(self.perception_latency_s >= 0, "perception_latency_s", "must be ≥ 0")
+        require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
+        require(self.tilt_noise_deg >= 0, "tilt_noise_deg", "must be ≥ 0")
+        require(self.story_rest_s >= 0, "story_rest_s", "must be ≥ 0")
+        for name in ("frame_interval_s", "frame_timeout_s"):
+            require(getattr(self, name) > 0, name, "must be positive")
+
+    def for_controller(self, controller: Any) -> SimSettings:
+        """These settings with unset values taken from the controller's configuration (the
+        daemon core's ``control.rate_hz``, ``perception.period_s`` and
+        ``perception.laser_timeout_s``) or the defaults."""
+        cfg = getattr(controller, "config", None)
+        control = self.control_period_s
+        if control is None:
+            control = float(cfg.control.period_s) if cfg is not None else 0.05
+        perception = self.perception_period_s
+        if perception is None:
+            perception = float(cfg.perception.period_s) if cfg is not None else 0.2
+        laser = self.laser_timeout_s
+        if laser is None:
+            laser = float(cfg.perception.laser_timeout_s) if cfg is not None else 0.5
+        return dataclasses.replace(
+            self, control_period_s=control, perception_period_s=perception, laser_timeout_s=laser
+        )
+
+    def ticks(self, period_s: float | None) -> int:
+        """A period as a whole number of physics ticks (at least 1)."""
+        require(period_s is not None, "period", "must be resolved (for_controller)")
+        assert period_s is not None
+        return max(1, round(period_s / self.physics_dt_s))
