@@ -115,10 +115,14 @@ class Daemon:
         self.recording: Any = None  # omnid.record.session.DaemonRecording (record.path/view)
         rec = holder.config.record
         if rec.enabled or rec.view:
+            from omnid.errors import ConfigError
             from omnid.record.session import DaemonRecording
 
-            self.recording = DaemonRecording(holder.config, self.calibration)
-            self.core = self.recording.wrap(self.core)
+            try:
+                self.recording = DaemonRecording(holder.config, self.calibration)
+                self.core = self.recording.wrap(self.core)
+            except (ConfigError, OSError) as exc:  # never a reason not to drive
+                log.error("recording unavailable, the chair runs without it: %s", exc)
         self.tilt: Any = None
         self.joystick: Any = None
         self.worker: Any = None

@@ -28,7 +28,6 @@ import collections
 import contextlib
 import logging
 import math
-import os
 import re
 import threading
 import time
@@ -46,10 +45,8 @@ log = logging.getLogger(__name__)
 
 MB = 1024 * 1024
 #: the writer thread pauses after this many records (see :meth:`Recorder._drain`)
-SLICE_RECORDS = 8
+SLICE_RECORDS = 4
 SLICE_PAUSE_S = 0.0002
-#: niceness of the writer thread (Linux; the control loop's thread keeps 0)
-WRITER_NICE = 10
 
 
 def require_recording_libraries() -> None:
@@ -319,10 +316,6 @@ class Recorder:
             self._housekeeping()
 
     def _run(self) -> None:
-        with contextlib.suppress(OSError, AttributeError):  # Linux: a thread has its own nice
-            # the encoding (PNG, zstd: the GIL released) yields the CPU to the control loop,
-            # as the perception worker does (perception.worker_nice)
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICE)
         while True:
             stopping = self._stop.wait(self.poll_s)
             try:
