@@ -111,9 +111,9 @@ def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
     rendered floor on a frame server's socket, a calibration, the daemon's config file."""
     from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
-    from omnid.core.laser import DotPattern
     from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
     from omnid.devices.emulators.gs311 import Gs311Emulator
+    from omnid.sim.laser import ideal_lattice
     from omnid.sim.render import render_capture
 
     class TimedUnit(ControlUnitEmulator):
@@ -132,7 +132,7 @@ def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
 
     tmp = Path(tempfile.mkdtemp(prefix="omnid-bench-"))
     rig = StereoRig.nominal(floor_depth_mm=1100.0)
-    cap = render_capture(rig, DotPattern().on_plane(1100.0), seed=1)
+    cap = render_capture(rig, ideal_lattice().on_plane(1100.0), seed=1)
     calib_path = tmp / "calib.yaml"
     calibrate_from_capture(cap, 1100.0, rig.baseline_mm).save(calib_path)
     cu = TimedUnit(MotorPlant())

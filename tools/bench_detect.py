@@ -41,7 +41,7 @@ import numpy as np  # noqa: E402
 
 from omnid.core.detect import DetectionParams, detect_dots, to_gray  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
-from omnid.core.laser import DotPattern  # noqa: E402
+from omnid.sim.laser import ideal_lattice  # noqa: E402
 from omnid.sim.render import RenderOptions, SpotModel, render_capture, visible_truth  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,7 +98,7 @@ def trackpy_locate(sub: np.ndarray, minmass: float) -> np.ndarray:
 
 def scene() -> tuple[StereoRig, np.ndarray]:
     rig = StereoRig.nominal()
-    return rig, DotPattern(rows=30, cols=34, step_slope=0.07).on_plane(rig.floor_depth_mm)
+    return rig, ideal_lattice(30, 35, 0.07, 0.28).on_plane(rig.floor_depth_mm)
 
 
 def count_mode(which: str, n: int, before: str) -> int:

@@ -29,10 +29,10 @@ import cv2  # noqa: E402
 from omnid.core.classify import classify, with_classes  # noqa: E402
 from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
-from omnid.core.laser import DotPattern  # noqa: E402
 from omnid.core.occupancy import CellState, OccupancyGrid, rig_to_robot  # noqa: E402
 from omnid.core.types import PointClass  # noqa: E402
 from omnid.sim import scenes  # noqa: E402
+from omnid.sim.laser import ideal_lattice  # noqa: E402
 from omnid.sim.world import cast_laser, observe  # noqa: E402
 
 
@@ -54,9 +54,9 @@ def main() -> int:
     args = ap.parse_args()
     cv2.setNumThreads(1)
 
-    cols = 50
+    cols = 51
     rows = max(1, round(args.points / cols))
-    pattern = DotPattern(rows=rows, cols=cols, step_slope=0.06, forward_min_slope=0.3)
+    pattern = ideal_lattice(rows=rows, cols=cols, step_slope=0.06, forward_min_slope=0.3)
     rig = StereoRig.nominal()
     sc = scenes.three_boxes()
     hits = cast_laser(sc.world, sc.pose, sc.mount, pattern, rig)

@@ -24,10 +24,10 @@ import numpy as np
 from omnid.core.calibration import Calibration, LaserLattice
 from omnid.core.classify import classify
 from omnid.core.freespace import FreeSpaceMap
-from omnid.core.laser import DotPattern
 from omnid.core.matching import fit_thesis_polynomials, match_dots
 from omnid.core.triangulate import triangulate
 from omnid.core.types import PointCloud
+from omnid.sim.laser import ideal_lattice
 from omnid.sim.rigs import misaligned_rig
 
 
@@ -48,8 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rig = misaligned_rig()
     H = rig.floor_depth_mm
-    pat = DotPattern(rows=30, cols=50, step_slope=0.06, forward_min_slope=0.25)
-    sl = pat.slopes()
+    pat = ideal_lattice(rows=30, cols=51, step_slope=0.06, forward_min_slope=0.24)
+    sl = pat.rays().slopes()
     box = (sl[:, 0] > 0.8) & (sl[:, 0] < 1.2) & (np.abs(sl[:, 1]) < 0.3)
     depth = np.where(box, H - 300.0, H)
     xyz = np.column_stack([sl * depth[:, None], depth])
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     floor_px = rig.project(pat.on_plane(H))
     floor_px = floor_px[rig.visible(floor_px)]
     poly = fit_thesis_polynomials(floor_px, floor_px[:, :2], floor_px[:, 2:])
-    lat = LaserLattice(0.25, 0.06, -0.06 * 24.5, 0.06, (0, 29), (0, 49))
+    lat = LaserLattice(0.24, 0.06, -0.06 * 25, 0.06, (0, 29), (0, 50))
     # the dots' scatter (0.2 px) as a calibration measures it (the best matcher's label walk
     # is as strict as that scatter allows)
     calib = Calibration(

@@ -80,12 +80,12 @@ def main() -> None:
     a = ap.parse_args()
     from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
-    from omnid.core.laser import DotPattern
     from omnid.core.pipeline import perceive
     from omnid.core.types import PointClass
+    from omnid.sim.laser import ideal_lattice
 
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    pattern = DotPattern()
+    pattern = ideal_lattice()  # today's calibration assumes the regular lattice (issue 9)
     calib = calibrate_from_capture(capture_at(rig, pattern, 0.0, False, 0), FLOOR_MM, 200.0)
     mm_per_px = FLOOR_MM / rig.cam1.f_over_k_px
     print(

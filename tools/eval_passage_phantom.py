@@ -19,10 +19,10 @@ import numpy as np
 
 from omnid.core.calibration import calibrate_from_capture
 from omnid.core.detect import detect_dots
-from omnid.core.laser import DotPattern
 from omnid.core.matching import match_dots
 from omnid.core.triangulate import triangulate
 from omnid.sim.course import walls
+from omnid.sim.laser import ideal_lattice
 from omnid.sim.render import RenderOptions, render_camera_pair, render_capture
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.world import Box, RigMount, World, cast_laser
@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     args = ap.parse_args()
     rig = misaligned_rig(H)
-    pat = DotPattern()
+    pat = ideal_lattice()  # today's matcher assumes the regular lattice (issue 9)
     calib = calibrate_from_capture(render_capture(rig, pat.on_plane(H), seed=7919), H, 200.0)
     world = World(
         boxes=(

@@ -191,10 +191,10 @@ def run(args: argparse.Namespace) -> int:
             get_scene(name)
 
     from omnid.config import to_mapping
-    from omnid.experiments.scenes import floor_hits, scene_hits
+    from omnid.experiments.scenes import scene_hits
     from omnid.sim import specs
     from omnid.sim.render import RenderOptions, render_hits
-    from omnid.sim.scenes import extra_scene
+    from omnid.sim.scenes import extra_scene, floor_hits
 
     H = scene.mount.height_mm
     if args.misaligned and args.rig not in (None, "misaligned"):
@@ -212,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     _mkdir(out)
 
-    floor = floor_hits(rig, laser, scene.mount.x_offset_mm)
+    floor = floor_hits(rig, laser, scene.mount)
     hits = scene_hits(scene, rig, laser)
     _write_capture(out, render_hits(rig, floor, args.seed, options), "floor_")
     _write_capture(out, render_hits(rig, hits, args.seed + 1, options))

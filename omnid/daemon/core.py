@@ -11,7 +11,12 @@ ends in zero wheel velocity, logged with its reason:
 - perception missing or stale → no forward motion (:mod:`omnid.daemon.safety`);
 - the control-unit port is gone (``link_ok`` False, set by the daemon from the link's health)
   → likewise, at once rather than after ``status_timeout_s``;
-- an exception inside a cycle → duty 0, ``enable=False``, controllers reset.
+- an exception inside a cycle → duty 0, ``enable=False``, controllers reset;
+- a bump — a wheel asked to turn whose clock counter does not move
+  (:class:`~omnid.daemon.motion.StallDetector`) → duty 0 at once (the wheels are pressed against
+  something: no ramp), and requests in the same direction (wheel velocities within
+  ``motion.bump_same_direction_deg`` of the bumped ones) are refused (reason ``bump``) until the
+  rider asks for something else — stop, centre, or another direction.
 
 With ``control.rearm_after_fault`` (on in the shipped etc/omnid.yaml), after a control-unit
 fault or an exception the chair does not resume by itself when the link comes back: motion
@@ -34,10 +39,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from omnid.core.freespace import FreeSpaceMap
+from omnid.core.kinematics import wheel_speeds
 from omnid.core.occupancy import OccupancyGrid
 from omnid.core.types import PointCloud
 from omnid.daemon.config import OmnidConfig
-from omnid.daemon.motion import MotionController, Odometry
+from omnid.daemon.motion import MotionController, Odometry, StallDetector
 from omnid.daemon.rider import JoystickSample, RiderDemand, RiderMux, TiltSample
 from omnid.daemon.safety import Reason, ReasonLog, SafetyDecision, SafetyLayer
 from omnid.devices.control_unit import WheelCommand
@@ -137,6 +143,9 @@ class ControlCore:
         self.safety = SafetyLayer(config.safety)
         self.motion = MotionController(config.motion)
         self.odometry = Odometry(config.motion)
+        self.stall = StallDetector(config.motion)
+        self.bump_direction: tuple[float, float] | None = None  # unit (left, right) of a bump
+        self.bump_count = 0
         self.map: WorldMap = world_map if world_map is not None else default_map(config)
         self.laser_on = True  # what the perception cycle asks for (off for mask frames)
         self.capturing = False  # True while mask/base frames are being taken
@@ -172,6 +181,12 @@ class ControlCore:
         self.status = status
         if prev is not None and status.timestamp_s < prev.timestamp_s:
             return  # out of order: keep time monotonic
+        self.stall.on_status(
+            int(status.left_clocks),
+            int(status.right_clocks),
+            float(status.timestamp_s),
+            self.motion.duties,
+        )
         dx, dy, dth = self.odometry.update(
             int(status.left_clocks), int(status.right_clocks), float(status.timestamp_s)
         )
@@ -218,6 +233,36 @@ class ControlCore:
             self.perception_time_s = float(capture_time_s)
 
     # ---- the cycle ----------------------------------------------------------------------
+    def _on_bump(self, stalled: tuple[bool, bool], now_s: float) -> None:
+        """A stalled wheel: remember the direction the wheels were driven in, stop now."""
+        vl, vr = self.motion.targets_mm_s
+        norm = math.hypot(vl, vr)
+        self.bump_count += 1
+        wheels = " and ".join(n for n, k in zip(("left", "right"), stalled, strict=True) if k)
+        asked = max(self.stall.asked_mm)
+        self._log.log(
+            "bump",
+            f"{wheels} wheel asked for {asked:.0f} mm without a clock (wheels at "
+            f"{vl:.0f}/{vr:.0f} mm/s): stopped; that direction is refused until the rider "
+            "asks for something else",
+            now_s,
+            logging.ERROR,
+        )
+        if norm > 0.0:
+            self.bump_direction = (vl / norm, vr / norm)
+        self.stall.reset()
+
+    def _same_direction(self, v_mm_s: float, omega_rad_s: float) -> bool:
+        """Whether a requested twist drives the wheels the way they were driven at the bump."""
+        if self.bump_direction is None:
+            return False
+        vl, vr = wheel_speeds(v_mm_s, omega_rad_s, self.config.motion.track_mm)
+        norm = math.hypot(float(vl), float(vr))
+        if norm == 0.0:
+            return False
+        cos = (float(vl) * self.bump_direction[0] + float(vr) * self.bump_direction[1]) / norm
+        return cos >= math.cos(math.radians(self.config.motion.bump_same_direction_deg))
+
     def step(self, now_s: float) -> WheelCommand:
         """One control cycle at monotonic time ``now_s``; never raises."""
         try:
@@ -296,11 +341,25 @@ class ControlCore:
             top = m.max_speed_mm_s if demand.forward >= 0 else m.max_reverse_speed_mm_s
             v_req = demand.forward * top
             w_req = demand.turn * m.max_turn_rate_rad_s
+        stalled = self.stall.stalled
+        if any(stalled):
+            self._on_bump(stalled, now_s)
+        bump_refused = False
+        if self.bump_direction is not None:
+            if self._same_direction(v_req, w_req):
+                bump_refused = True
+                self._log.log("bump", "same direction as the bump refused", now_s)
+            else:
+                log.info("bump: the rider asked for something else; motion allowed again")
+                self.bump_direction = None
         if self.capturing and cfg.perception.capture_policy == "limit":
             cap = cfg.perception.capture_speed_mm_s
             v_req = min(max(v_req, -cap), cap)
         age = None if self.perception_time_s is None else now_s - self.perception_time_s
-        decision = self.safety.check(self.grid, v_req, w_req, age, now_s)
+        if bump_refused:
+            decision = SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.BUMP,))
+        else:
+            decision = self.safety.check(self.grid, v_req, w_req, age, now_s)
         reasons.extend(decision.reasons)
         if decision.scale < 1.0 and (decision.stopped or decision.reasons):
             # refused or limited: brake at the emergency rate if the chair is faster than allowed
@@ -309,6 +368,8 @@ class ControlCore:
                 or abs(self.motion.ramp.omega_rad_s) > abs(decision.omega_rad_s) + 1e-9
             )
         measured = self.odometry.wheel_speeds()
+        if any(stalled):  # pressed against something: no ramp, the duty goes to zero now
+            self.motion.reset()
         left, right = self.motion.step(
             decision.v_mm_s, decision.omega_rad_s, measured, dt, emergency
         )

@@ -65,6 +65,7 @@ class Reason(Enum):
     APPROACH = "approach"
     ESCAPE = "escape_creep"  # in the stop zone, but the move opens the gap: creep speed
     UNKNOWN_AHEAD = "unknown_ahead"
+    BUMP = "bump"  # a wheel did not turn as commanded: stopped, that direction refused
     PERCEPTION_STALE = "perception_stale"
     RIDER_STOP = "rider_stop"
     INPUT_STALE = "input_stale"

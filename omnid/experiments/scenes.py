@@ -31,7 +31,7 @@ from omnid.core.types import PointClass, PointCloud, StereoCapture
 from omnid.sim.laser import LaserProjector, ideal_lattice
 from omnid.sim.render import RenderOptions, render_hits
 from omnid.sim.rigs import misaligned_rig
-from omnid.sim.scenes import Scene, get_scene
+from omnid.sim.scenes import Scene, floor_hits, get_scene
 from omnid.sim.world import LaserHits, cast_laser
 
 METHODS: tuple[str, ...] = ("best", "thesis")
@@ -43,19 +43,6 @@ def scene_hits(scene: Scene, rig: StereoRig, laser: LaserProjector | None = None
     return cast_laser(scene.world, scene.pose, scene.mount, laser or ideal_lattice(), rig)
 
 
-def floor_hits(
-    rig: StereoRig, laser: LaserProjector | None = None, x_offset_mm: float | None = None
-) -> LaserHits:
-    """The laser's dots on the empty floor at the rig's floor depth."""
-    from omnid.sim.scenes import floor
-    from omnid.sim.world import RigMount
-
-    mount = RigMount(height_mm=rig.floor_depth_mm)
-    if x_offset_mm is not None:
-        mount = RigMount(x_offset_mm=x_offset_mm, height_mm=rig.floor_depth_mm)
-    return scene_hits(floor(mount), rig, laser)
-
-
 def floor_capture(
     rig: StereoRig,
     seed: int,
@@ -63,7 +50,7 @@ def floor_capture(
     laser: LaserProjector | None = None,
 ) -> StereoCapture:
     """The empty floor at the rig's floor depth, as ``omnid calibrate`` wants it."""
-    return render_hits(rig, floor_hits(rig, laser), seed, options)
+    return render_hits(rig, floor_hits(rig, laser or ideal_lattice()), seed, options)
 
 
 def calibrate_on_floor(

@@ -75,6 +75,12 @@ class LaserRays:
     def __len__(self) -> int:
         return len(self.directions)
 
+    def slopes(self) -> NDArray[np.float64]:
+        """(N, 2) each beam's (ΔX/ΔZ, ΔY/ΔZ): a dot ΔZ below the source lies at
+        origin + ΔZ·(slope_x, slope_y, 1) (for a source at the rig origin, the old lattice's
+        slopes X/Z, Y/Z)."""
+        return self.directions[:, :2] / self.directions[:, 2:3]
+
     def on_plane(self, depth_mm: float) -> NDArray[np.float64]:
         """Dots (N, 3) mm the beams make on a horizontal plane ``depth_mm`` below the mirrors
         (NaN for a plane the beam cannot reach: at or above the source)."""

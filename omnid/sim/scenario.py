@@ -136,15 +136,15 @@ def write_floor_capture(directory: str, seed: int = 0) -> None:
 
     import cv2
 
-    from omnid.sim.render import render_capture
+    from omnid.sim.laser import ideal_lattice
+    from omnid.sim.render import render_hits
     from omnid.sim.rigs import misaligned_rig
+    from omnid.sim.scenes import floor_hits
     from omnid.sim.world import RigMount
 
     h = RigMount().height_mm
     rig = misaligned_rig(h)
-    from omnid.core.laser import DotPattern
-
-    cap = render_capture(rig, DotPattern().on_plane(h), seed=seed + 7919)
+    cap = render_hits(rig, floor_hits(rig, ideal_lattice()), seed + 7919)
     out = Path(directory)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -29,8 +29,9 @@ from functools import partial
 
 import numpy as np
 
+from omnid.core.geometry import StereoRig
 from omnid.errors import InputError
-from omnid.sim.world import Box, DropOff, RigMount, World
+from omnid.sim.world import Box, DropOff, Laser, LaserHits, RigMount, World, cast_laser
 
 #: Table 7.4: depths of the horizontal planes below the mirrors, mm.
 HORIZONTAL_PLANE_DEPTHS_MM = (680.0, 800.0, 930.0, 1100.0)
@@ -182,6 +183,16 @@ def extra_scene(name: str, rng: np.random.Generator, mount: RigMount | None = No
     if name == "box":
         return random_box(rng, mount)
     return get_scene(name)
+
+
+def floor_hits(rig: StereoRig, laser: Laser, mount: RigMount | None = None) -> LaserHits:
+    """The laser's dots on the empty floor at the rig's floor depth (the installer's capture
+    for calibration), the chair at the origin of a ``mount`` of that height."""
+    m = mount or RigMount()
+    if m.height_mm != rig.floor_depth_mm:
+        m = RigMount(x_offset_mm=m.x_offset_mm, height_mm=rig.floor_depth_mm)
+    sc = floor(m)
+    return cast_laser(sc.world, sc.pose, sc.mount, laser, rig)
 
 
 def _registry() -> dict[str, Callable[[], Scene]]:

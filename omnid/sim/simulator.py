@@ -49,7 +49,6 @@ from numpy.typing import NDArray
 
 from omnid.config import require
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud, StereoCapture
 from omnid.daemon.capture import CaptureCycle, CaptureFailure, CaptureJob, CaptureSettings, Frame
 from omnid.devices.joystick import JoystickReading
@@ -65,6 +64,7 @@ from omnid.sim.adapters import (
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
 from omnid.sim.faults import FAULT_KINDS, Fault, FaultInjector, FaultKind, InjectedFault
+from omnid.sim.laser import LaserProjector, ideal_lattice
 from omnid.sim.open_loop import OpenLoopCommand, OpenLoopDriver
 from omnid.sim.results import SimResult, chair_clearance_mm, world_rects
 from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
@@ -119,7 +119,7 @@ class Simulator:
         keys: KeyScript | None = None,
         mount: RigMount | None = None,
         rig: StereoRig | None = None,
-        pattern: DotPattern | None = None,
+        laser: LaserProjector | None = None,
         progress: Callable[[float, Simulator], None] | None = None,
         faults: Sequence[Fault] = (),
         joystick: JoystickScript | None = None,
@@ -128,7 +128,11 @@ class Simulator:
         self.controller = controller
         self.settings = (settings or SimSettings()).for_controller(controller)
         s = self.settings
-        self.chair = Chair(chair_settings, pose=course.start_pose)
+        self.chair = Chair(
+            chair_settings,
+            pose=course.start_pose,
+            world=course.world if s.contact == "block" else None,
+        )
         self.rider = rider
         self.keys = keys
         self.joystick: JoystickScript | ReactiveRider | None = joystick
@@ -144,7 +148,7 @@ class Simulator:
                 misaligned_rig(h) if s.rig == "misaligned" else StereoRig.nominal(floor_depth_mm=h)
             )
         self.rig = rig
-        self.pattern = pattern or DotPattern()
+        self.laser = laser or ideal_lattice()
         self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
         self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
         if rider is not None:
@@ -174,11 +178,12 @@ class Simulator:
         """Calibrate the rig as an installer would: one capture of an empty floor ``H`` below
         the mirrors (laser on), ``calibrate_from_capture``; the result is what perception uses."""
         from omnid.core.calibration import calibrate_from_capture
-        from omnid.sim.render import render_capture
+        from omnid.sim.render import render_hits
+        from omnid.sim.scenes import floor_hits
 
         w0 = time.perf_counter()
-        floor = self.pattern.on_plane(self.mount.height_mm)
-        cap = render_capture(self.rig, floor, seed=self.settings.seed + 7919)
+        floor = floor_hits(self.rig, self.laser, self.mount)
+        cap = render_hits(self.rig, floor, self.settings.seed + 7919)
         self.calibration = calibrate_from_capture(cap, self.mount.height_mm, self.rig.baseline_mm)
         self.install_s = time.perf_counter() - w0
         return self.calibration
@@ -191,7 +196,7 @@ class Simulator:
         key = pose or self.chair.pose
         hits = self._hits_cache.get(key)
         if hits is None:
-            hits = cast_laser(self.course.world, key, self.mount, self.pattern, self.rig)
+            hits = cast_laser(self.course.world, key, self.mount, self.laser, self.rig)
             if len(self._hits_cache) >= 64:
                 self._hits_cache.pop(next(iter(self._hits_cache)))
             self._hits_cache[key] = hits
@@ -205,16 +210,22 @@ class Simulator:
     ) -> StereoCapture:
         """A mask/base capture at ``pose`` (default: now); the base shows dots only if the laser
         is on (by default: as the control unit has switched it)."""
-        from omnid.sim.render import RenderOptions, render_camera_pair
+        from omnid.sim.render import RenderOptions, hits_flux, render_camera_pair
 
         on = self.control_unit.laser_on if laser_on is None else laser_on
         hits = self.laser_hits(pose)
         rng = np.random.default_rng(self._rng.integers(1 << 31) if seed is None else seed)
         opts = RenderOptions()
+        flux = hits_flux(hits, self.rig, opts.spots)
         images: list[NDArray[np.uint8]] = []
-        for cam, vis in ((self.rig.cam1, hits.visible1), (self.rig.cam2, hits.visible2)):
-            rc = cam.project(hits.xyz[vis]) if on else np.zeros((0, 2))
-            images.extend(render_camera_pair(cam, rc, opts, rng))
+        for k, (cam, vis) in enumerate(
+            ((self.rig.cam1, hits.visible1), (self.rig.cam2, hits.visible2))
+        ):
+            if not on:
+                vis = np.zeros(len(hits), dtype=bool)
+            images.extend(
+                render_camera_pair(cam, cam.project(hits.xyz[vis]), opts, rng, flux[vis, k])
+            )
         return StereoCapture(images[0], images[1], images[2], images[3], self.now_s)
 
     def frame(self) -> tuple[float, NDArray[np.uint8], NDArray[np.uint8]]:
@@ -468,15 +479,17 @@ class Simulator:
                     last_progress = now
                     self.progress(now, self)
             pose_now = self.chair.pose
-            found = self.chair.contacts(self.course.world) if pose_now != last_pose else []
-            last_pose = pose_now  # a chair that has not moved touches nothing new
+            moved_now = pose_now != last_pose or bool(self.chair.blocked_by)
+            found = self.chair.contacts(self.course.world) if moved_now else []
+            last_pose = pose_now  # a chair that has not moved (nor pushed) touches nothing new
             new = [c for c in found if all(c != old for _, old in contacts)]
             if new:
                 min_clear = 0.0
             for c in new:
                 log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
                 contacts.append((now, c))
-            if new and s.stop_on_contact:
+            ending = [c for c in new if c.kind == "fall" or s.contact == "pass"]
+            if ending and s.stop_on_contact:
                 traj[n_traj] = (now, *self.chair.pose)
                 n_traj += 1
                 break

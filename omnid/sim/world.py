@@ -18,7 +18,6 @@ vectorised over rays (slab tests against all boxes at once).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,7 +27,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from omnid.config import require
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.triangulate import TriangulationMethod
 from omnid.core.types import PointClass, PointCloud
 from omnid.sim.laser import LaserProjector, LaserRays
@@ -152,7 +150,7 @@ class RigMount:
 
 @dataclass(frozen=True)
 class LaserHits:
-    """Where the laser dots fall, one row per ray of the pattern (row-major like its slopes).
+    """Where the laser dots fall, one row per beam of the laser (in its beam order).
 
     xyz         (N, 3) dot positions in the rig frame (SPEC §2), mm
     visible1    (N,) inside mirror 1's disk and not occluded between the dot and mirror 1
@@ -257,29 +255,12 @@ def _blocked(
     return np.any(hi - lo > _GRAZE, axis=0)
 
 
-Laser = LaserProjector | LaserRays | DotPattern
-
-
-@functools.lru_cache(maxsize=8)
-def _pattern_rays(pattern: DotPattern) -> LaserRays:
-    """The old slope lattice as beams from the rig origin (computed once per pattern)."""
-    d = pattern.directions()
-    n = len(d)
-    rays = LaserRays(
-        np.zeros(3), d, np.ones(n), np.zeros((n, 2), dtype=np.int64), np.full(n, -1, np.int64)
-    )
-    for arr in (rays.origin_mm, rays.directions, rays.brightness):
-        arr.setflags(write=False)
-    return rays
+Laser = LaserProjector | LaserRays
 
 
 def laser_rays(laser: Laser) -> LaserRays:
-    """The beams of any laser description: a projector, its rays, or the old ``DotPattern``."""
-    if isinstance(laser, LaserRays):
-        return laser
-    if isinstance(laser, LaserProjector):
-        return laser.rays()
-    return _pattern_rays(laser)
+    """The beams of a laser description: a projector or its rays."""
+    return laser if isinstance(laser, LaserRays) else laser.rays()
 
 
 def cast_laser(

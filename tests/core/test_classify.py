@@ -7,10 +7,10 @@ import pytest
 
 from omnid.core.classify import ClassifySettings, classify, floor_band_mm, with_classes
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass, PointCloud
 from omnid.errors import ConfigError
 from omnid.sim import scenes
+from omnid.sim.laser import LaserProjector, random_laser
 from omnid.sim.world import cast_laser, observe
 
 RIG = StereoRig.nominal()
@@ -19,13 +19,14 @@ PIXEL_SIGMA_PX = 0.2
 
 
 def _runs(method: str = "best"):
-    """(true heights, truth, predicted) over every named scene and five noise seeds."""
-    pat = DotPattern()
-    for name in scenes.scene_names():
-        sc = scenes.get_scene(name)
-        hits = cast_laser(sc.world, sc.pose, sc.mount, pat, RIG)
-        true_h = sc.mount.height_mm - hits.xyz[hits.visible, 2]
-        for seed in range(5):
+    """(true heights, truth, predicted) over every named scene, five lasers drawn at random
+    and one noise seed each."""
+    for seed in range(5):
+        laser = random_laser(seed)
+        for name in scenes.scene_names():
+            sc = scenes.get_scene(name)
+            hits = cast_laser(sc.world, sc.pose, sc.mount, laser, RIG)
+            true_h = sc.mount.height_mm - hits.xyz[hits.visible, 2]
             cloud, truth = observe(hits, RIG, PIXEL_SIGMA_PX, seed, sc.mount.height_mm, method)
             yield name, true_h, truth, classify(cloud)
 
@@ -43,7 +44,7 @@ def test_classification_is_right_on_distinguishable_dots_and_never_calls_tall_th
         # Safety: nothing 120 mm above or below the floor is ever free.
         tall = np.abs(true_h) >= 120.0
         assert not np.any(pred[tall] == PointClass.FLOOR), name
-    assert total > 25_000
+    assert total > 15_000
     assert wrong / total <= 0.01, f"{wrong} of {total} distinguishable dots misclassified"
     assert wrong_all / total_all <= 0.02, f"{wrong_all} of {total_all} dots misclassified"
 
@@ -60,10 +61,10 @@ def test_thesis_triangulation_covariance_classifies_nearly_as_well():
 
 def test_dropoff_and_floor_dots_of_the_dropoff_scene():
     sc = scenes.dropoff()
-    hits = cast_laser(sc.world, sc.pose, sc.mount, DotPattern(), RIG)
+    hits = cast_laser(sc.world, sc.pose, sc.mount, LaserProjector(), RIG)
     cloud, truth = observe(hits, RIG, PIXEL_SIGMA_PX, 7, sc.mount.height_mm)
     pred = classify(cloud)
-    assert (truth == PointClass.DROPOFF).sum() > 100
+    assert (truth == PointClass.DROPOFF).sum() > 30
     assert np.mean(pred == truth) >= 0.99
 
 

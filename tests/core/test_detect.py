@@ -10,12 +10,12 @@ import pytest
 from omnid.config import from_mapping
 from omnid.core.detect import DetectionParams, detect_dots
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.errors import ConfigError, InputError
+from omnid.sim.laser import ideal_lattice
 from omnid.sim.render import RenderOptions, SpotModel, draw_spots, render_capture, visible_truth
 
 RIG = StereoRig.nominal()
-DOTS = DotPattern(rows=30, cols=34, step_slope=0.07).on_plane(RIG.floor_depth_mm)  # ~870 in disk
+DOTS = ideal_lattice(30, 35, 0.07, 0.28).on_plane(RIG.floor_depth_mm)  # ~870 in disk, 7.6 px apart
 EDGE_MARGIN_PX = 4.0  # dots this close to the disk edge lose light to it: not scored
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from omnid.core.geometry import MIRROR_CONSTANT_K, MirrorCamera, StereoRig
-from omnid.core.laser import DotPattern
+from omnid.sim.laser import LaserProjector, ideal_lattice
 
 
 def test_mirror_constant_matches_thesis():
@@ -61,13 +61,19 @@ def test_disk_visibility(nominal_rig):
     assert inside.tolist() == [True, False]
 
 
-def test_laser_rows_do_not_depend_on_depth(nominal_rig):
-    pattern = DotPattern()
+def test_laser_rows_do_not_depend_on_depth_only_for_a_source_in_the_mirror_plane(nominal_rig):
+    """SPEC §2's special case: from a source on the baseline in the mirror plane a dot keeps
+    its image row at every depth; from a source above the plane it does not."""
+    pattern = ideal_lattice()
     near = nominal_rig.project(pattern.on_plane(500.0))
     far = nominal_rig.project(pattern.on_plane(1100.0))
     np.testing.assert_allclose(near[:, 0], far[:, 0])
     np.testing.assert_allclose(near[:, 2], far[:, 2])
     assert not np.allclose(near[:, 1], far[:, 1])
+    real = LaserProjector(source_mm=(0.0, 0.0, -90.0))
+    near = nominal_rig.project(real.on_plane(500.0))
+    far = nominal_rig.project(real.on_plane(1100.0))
+    assert np.median(np.abs(near[:, 0] - far[:, 0])) > 5.0
 
 
 def test_invalid_camera_is_refused():

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.errors import ConfigError
 from omnid.sim.laser import LaserProjector, LaserSpread, ideal_lattice, random_laser
 from omnid.sim.rigs import RigSpread, misaligned_rig, random_rig
@@ -26,11 +25,19 @@ def beam_components(p: LaserProjector) -> np.ndarray:
 
 
 def test_ideal_lattice_is_the_old_slope_lattice() -> None:
-    np.testing.assert_allclose(ideal_lattice().on_plane(1100.0), DotPattern().on_plane(1100.0))
-    lat = ideal_lattice(rows=5, cols=7, step_slope=0.2, forward_min_slope=0.4)
-    np.testing.assert_allclose(
-        lat.on_plane(900.0), DotPattern(5, 7, 0.2, 0.4).on_plane(900.0), atol=1e-9
-    )
+    """Beams from the rig origin, row-major (forward index, lateral index), at the slopes
+    (X/Z, Y/Z) = (forward_min_slope + step·l, step·(k − (cols − 1)/2))."""
+    for args, depth in (((19, 25, 0.10, 0.30), 1100.0), ((5, 7, 0.2, 0.4), 900.0)):
+        rows, cols, step, first = args
+        lat = ideal_lattice(*args)
+        sx, sy = np.meshgrid(
+            first + step * np.arange(rows), step * (np.arange(cols) - (cols - 1) / 2), indexing="ij"
+        )
+        want = np.column_stack([sx.ravel() * depth, sy.ravel() * depth, np.full(sx.size, depth)])
+        np.testing.assert_allclose(lat.on_plane(depth), want, atol=1e-9)
+        np.testing.assert_array_equal(lat.rays().brightness, 1.0)
+    with pytest.raises(ValueError, match="multiple"):
+        ideal_lattice(forward_min_slope=0.25)
 
 
 @pytest.mark.parametrize("law", ["sine", "angle", "slope"])
@@ -176,3 +183,21 @@ def test_cast_from_an_off_plane_source_lands_on_the_beams() -> None:
     assert on_box.sum() > 10
     np.testing.assert_allclose(hits.xyz[on_box, 2].min(), 1100.0 - 300.0, atol=1e-6)
     np.testing.assert_allclose(hits.brightness, p.rays().brightness)
+
+
+def test_the_simulator_casts_and_renders_the_laser_it_is_given() -> None:
+    from omnid.sim.course import empty_room
+    from omnid.sim.simulator import SimSettings, Simulator
+
+    laser = LaserProjector(source_mm=(5.0, 10.0, -110.0))
+    sim = Simulator(empty_room(), None, settings=SimSettings(perception="off"), laser=laser)
+    hits = sim.laser_hits((0.0, 0.0, 0.0))
+    want = cast_laser(sim.course.world, (0.0, 0.0, 0.0), sim.mount, laser, sim.rig)
+    np.testing.assert_allclose(hits.xyz, want.xyz)
+    cap = sim.render(laser_on=True, seed=1, pose=(0.0, 0.0, 0.0))
+    diff = cap.base1.astype(float) - cap.mask1.astype(float)
+    rc = np.rint(hits.pixels[hits.visible1 & sim.rig.cam1.in_disk(hits.pixels[:, :2], 3.0), :2])
+    assert np.median(diff[rc[:, 0].astype(int), rc[:, 1].astype(int)]) > 60  # dots where cast
+    assert Simulator(empty_room(), None, settings=SimSettings(perception="off")).laser == (
+        ideal_lattice()
+    )  # the default stays the regular lattice until the new matcher lands (issue 9)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
+from omnid.sim.laser import LaserProjector
 from omnid.sim.render import (
     OUTSIDE_DISK_LEVEL,
     RenderOptions,
@@ -35,7 +35,7 @@ def test_spots_off_the_image_and_nan_are_ignored():
 
 def test_capture_is_seeded_and_dark_outside_the_disk():
     rig = StereoRig.nominal()
-    xyz = DotPattern().on_plane(rig.floor_depth_mm)
+    xyz = LaserProjector().on_plane(rig.floor_depth_mm)
     a = render_capture(rig, xyz, RenderOptions.realistic(), seed=4)
     b = render_capture(rig, xyz, RenderOptions.realistic(), seed=4)
     c = render_capture(rig, xyz, RenderOptions.realistic(), seed=5)
@@ -49,7 +49,7 @@ def test_capture_is_seeded_and_dark_outside_the_disk():
 
 def test_colour_capture_puts_the_laser_in_green():
     rig = StereoRig.nominal()
-    xyz = DotPattern().on_plane(rig.floor_depth_mm)
+    xyz = LaserProjector().on_plane(rig.floor_depth_mm)
     cap = render_capture(rig, xyz, RenderOptions.realistic(color=True), seed=1)
     assert cap.base1.shape == (480, 640, 3)
     diff = cap.base1.astype(float) - cap.mask1.astype(float)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from omnid.core.geometry import StereoRig
-from omnid.core.laser import DotPattern
 from omnid.core.types import PointClass
 from omnid.errors import ConfigError, InputError
 from omnid.sim import scenes
+from omnid.sim.laser import LaserProjector, LaserRays
 from omnid.sim.world import (
     Box,
     DropOff,
@@ -27,19 +27,22 @@ MOUNT = RigMount(x_offset_mm=300.0, height_mm=H)
 RIG = StereoRig.nominal(floor_depth_mm=H)
 
 
-def one_ray(slope_x: float) -> DotPattern:
-    """A pattern of the single ray (X/Z, Y/Z) = (slope_x, 0)."""
-    return DotPattern(rows=1, cols=1, forward_min_slope=slope_x)
+LASER = LaserProjector()  # a real laser: source 90 mm above the mirror plane, axis tilted
+
+
+def one_ray(slope_x: float) -> LaserRays:
+    """The single beam (X/Z, Y/Z) = (slope_x, 0) from the rig origin."""
+    d = np.array([[slope_x, 0.0, 1.0]]) / np.hypot(slope_x, 1.0)
+    return LaserRays(np.zeros(3), d, np.ones(1), np.zeros((1, 2), np.int64), np.full(1, -1))
 
 
 def test_bare_floor_dots_lie_on_their_rays_at_floor_depth():
-    pat = DotPattern()
-    hits = cast_laser(World(), (0.0, 0.0, 0.0), MOUNT, pat, RIG)
-    assert len(hits) == pat.rows * pat.cols
-    np.testing.assert_allclose(hits.xyz, pat.on_plane(H), atol=1e-6)
+    hits = cast_laser(World(), (0.0, 0.0, 0.0), MOUNT, LASER, RIG)
+    assert len(hits) == len(LASER.rays())
+    np.testing.assert_allclose(hits.xyz, LASER.on_plane(H), atol=1e-6)
     assert np.all(hits.truth == PointClass.FLOOR)
-    # Most of the lattice is inside both mirror disks; the far corners are not.
-    assert 0.85 * len(hits) < hits.visible.sum() < len(hits)
+    # Most of the pattern is inside both mirror disks; the far corners are not.
+    assert 0.8 * len(hits) < hits.visible.sum() < len(hits)
     np.testing.assert_allclose(hits.pixels, RIG.project(hits.xyz))
 
 
@@ -59,21 +62,25 @@ def test_box_side_hit_and_wall_scene():
     hits = cast_laser(sc.world, sc.pose, sc.mount, one_ray(1.0), RIG)
     np.testing.assert_allclose(hits.xyz[0], [550.0, 0.0, 550.0], atol=1e-6)
     assert hits.truth[0] == PointClass.OBSTACLE
-    full = cast_laser(sc.world, sc.pose, sc.mount, DotPattern(), RIG)
+    full = cast_laser(sc.world, sc.pose, sc.mount, LASER, RIG)
     on_wall = full.truth == PointClass.OBSTACLE
+    assert on_wall.sum() > 20
     np.testing.assert_allclose(full.xyz[on_wall, 0], 550.0, atol=1e-6)
-    # Rays steep enough to reach the floor before X = 550 stay on the floor; only rays passing
-    # beside the 2000 mm wide wall reach farther.
-    beside = np.abs(full.xyz[:, 1]) > 1000.0 * full.xyz[:, 0] / 550.0
+    # Beams steep enough to reach the floor before X = 550 stay on the floor; only beams
+    # passing beside the 2000 mm wide wall (|Y| > 1000 where they cross X = 550) reach farther.
+    rays = LASER.rays()
+    t = (550.0 - rays.origin_mm[0]) / rays.directions[:, 0]
+    y_at_wall = rays.origin_mm[1] + t * rays.directions[:, 1]
+    beside = np.abs(y_at_wall) > 1000.0
     assert np.all(full.xyz[~on_wall & ~beside, 0] <= 550.0 + 1e-6)
 
 
 @pytest.mark.parametrize("depth", scenes.HORIZONTAL_PLANE_DEPTHS_MM)
 def test_table_7_4_horizontal_planes(depth):
     sc = scenes.horizontal_plane(depth, MOUNT)
-    hits = cast_laser(sc.world, sc.pose, sc.mount, DotPattern(), RIG)
+    hits = cast_laser(sc.world, sc.pose, sc.mount, LASER, RIG)
     top = np.isclose(hits.xyz[:, 2], depth)
-    assert top.sum() > 100
+    assert top.sum() > 60
     if depth < H:
         assert np.all(hits.truth[top] == PointClass.OBSTACLE)
         assert np.all(hits.xyz[top, 0] >= scenes.HORIZONTAL_PLANE_NEAR_MM - 1e-6)
@@ -133,12 +140,12 @@ def test_pit_bottom_hidden_by_the_side_edge_from_one_mirror():
 def test_pose_rotation_and_translation_keep_rig_frame_hits():
     # The same box, seen from a chair turned by 90 degrees and moved, gives the same rig hits.
     box = Box(900, 1200, -200, 200, 250.0)
-    a = cast_laser(World((box,)), (0, 0, 0), MOUNT, DotPattern(), RIG)
+    a = cast_laser(World((box,)), (0, 0, 0), MOUNT, LASER, RIG)
     th = math.pi / 2
     pose = (500.0, -300.0, th)
     # Box corners rotated by +90 degrees about the origin ((x, y) -> (-y, x)), then shifted.
     rbox = Box(500 - 200, 500 + 200, -300 + 900, -300 + 1200, 250.0)
-    b = cast_laser(World((rbox,)), pose, MOUNT, DotPattern(), RIG)
+    b = cast_laser(World((rbox,)), pose, MOUNT, LASER, RIG)
     np.testing.assert_allclose(a.xyz, b.xyz, atol=1e-6)
     np.testing.assert_array_equal(a.truth, b.truth)
     np.testing.assert_array_equal(a.visible1, b.visible1)
@@ -163,8 +170,8 @@ def test_settings_are_checked_and_scenes_are_named():
         scenes.get_scene("nowhere")
     for name in scenes.scene_names():
         sc = scenes.get_scene(name)
-        hits = cast_laser(sc.world, sc.pose, sc.mount, DotPattern(), RIG)
-        assert hits.visible.sum() > 300, name
+        hits = cast_laser(sc.world, sc.pose, sc.mount, LASER, RIG)
+        assert hits.visible.sum() > 150, name
     sc = scenes.get_scene("passage")
-    hits = cast_laser(sc.world, sc.pose, sc.mount, DotPattern(), RIG)
+    hits = cast_laser(sc.world, sc.pose, sc.mount, LASER, RIG)
     assert {PointClass.FLOOR, PointClass.OBSTACLE} <= set(hits.truth.tolist())
