@@ -149,7 +149,9 @@ class Simulator:
             )
         self.rig = rig
         self.laser = laser or ideal_lattice()
-        self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
+        self.control_unit = make_control_unit(
+            self.chair, s.control_unit, s.watchdog_s, float(s.control_period_s or 0.02)
+        )
         self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
         if rider is not None:
             self.tilt = make_tilt_sensor(rider, s.tilt_link, s.tilt_noise_deg, s.seed)
