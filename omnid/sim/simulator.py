@@ -128,7 +128,11 @@ class Simulator:
         self.controller = controller
         self.settings = (settings or SimSettings()).for_controller(controller)
         s = self.settings
-        self.chair = Chair(chair_settings, pose=course.start_pose)
+        self.chair = Chair(
+            chair_settings,
+            pose=course.start_pose,
+            world=course.world if s.contact == "block" else None,
+        )
         self.rider = rider
         self.keys = keys
         self.joystick: JoystickScript | ReactiveRider | None = joystick
@@ -147,7 +151,9 @@ class Simulator:
         # the world's laser: a physical, non-ideal projector (perception never sees it;
         # calibration learns it from the installer's captures)
         self.laser = laser or LaserProjector()
-        self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
+        self.control_unit = make_control_unit(
+            self.chair, s.control_unit, s.watchdog_s, float(s.control_period_s or 0.02)
+        )
         self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
         if rider is not None:
             self.tilt = make_tilt_sensor(rider, s.tilt_link, s.tilt_noise_deg, s.seed)
@@ -476,15 +482,17 @@ class Simulator:
                     last_progress = now
                     self.progress(now, self)
             pose_now = self.chair.pose
-            found = self.chair.contacts(self.course.world) if pose_now != last_pose else []
-            last_pose = pose_now  # a chair that has not moved touches nothing new
+            moved_now = pose_now != last_pose or bool(self.chair.blocked_by)
+            found = self.chair.contacts(self.course.world) if moved_now else []
+            last_pose = pose_now  # a chair that has not moved (nor pushed) touches nothing new
             new = [c for c in found if all(c != old for _, old in contacts)]
             if new:
                 min_clear = 0.0
             for c in new:
                 log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
                 contacts.append((now, c))
-            if new and s.stop_on_contact:
+            ending = [c for c in new if c.kind == "fall" or s.contact == "pass"]
+            if ending and s.stop_on_contact:
                 traj[n_traj] = (now, *self.chair.pose)
                 n_traj += 1
                 break

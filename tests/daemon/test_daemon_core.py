@@ -163,7 +163,12 @@ def test_exception_in_cycle_fails_safe(caplog):
     free_map(m)
     chair = Chair()
     run(core, chair, 0.0, 1.5)
-    core.grid.states = None  # break the map: the safety check raises inside the cycle
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("broken map")
+
+    core.safety.check = broken  # the safety check raises inside the cycle
+    core.on_tilt(Tilt(-20.0, 0.0, 1.52))
     cmd = core.step(1.52)
     assert (cmd.left_duty, cmd.right_duty, cmd.enable) == (0.0, 0.0, False)
     assert core.fault_count == 1 and "cycle_exception" in caplog.text
