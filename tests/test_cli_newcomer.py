@@ -23,7 +23,7 @@ NAMES = ("mask1", "base1", "mask2", "base2")
 @pytest.fixture(scope="module")
 def floor(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str]]:
     folder = tmp_path_factory.mktemp("newcomer")
-    floor_cap, extras = installation_captures(StereoRig.nominal(), seed=3)
+    floor_cap, _ = installation_captures(StereoRig.nominal(), seed=3)
     args = []
     for name in NAMES:
         assert cv2.imwrite(str(folder / f"{name}.png"), getattr(floor_cap, name))

@@ -21,12 +21,13 @@ def capture_args(folder: Path, prefix: str = "") -> list[str]:
 
 
 def make_scene(folder: Path, name: str, *extra: str) -> Path:
-    """Render ``name`` into ``folder`` and calibrate on its floor and extra captures; returns
-    CALIB.yaml."""
-    assert main(["scene", name, "--out", str(folder), *extra]) == 0
+    """Render ``name`` (a plausible real laser) into ``folder`` with an installer's extra
+    captures of a wall and a box, and calibrate on them; returns CALIB.yaml."""
+    argv = ["scene", name, "--out", str(folder), "--laser", "default", *extra]
+    assert main([*argv, "--extra", "wall", "--extra", "box"]) == 0
     calib = folder / "calib.yaml"
     argv = ["calibrate", *capture_args(folder, "floor_"), "--floor-depth-mm", "1100"]
-    argv += ["--extra", str(folder / "extra_box"), "--extra", str(folder / "extra_wall")]
+    argv += ["--extra", str(folder / "extra1"), "--extra", str(folder / "extra2")]
     assert main([*argv, "--out", str(calib)]) == 0
     return calib
 

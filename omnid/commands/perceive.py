@@ -128,12 +128,16 @@ def run(args: argparse.Namespace) -> int:
         c.label: nearest_ahead_mm(cloud, int(c), args.half_width_mm)
         for c in (PointClass.OBSTACLE, PointClass.DROPOFF)
     }
-    if len(result.dots1) == 0 or len(result.dots2) == 0:
+    # a camera with fewer dots than a capture can be judged by has no laser in it: a spot or
+    # two of sensor noise in base minus mask is not a laser pattern (hundreds of dots)
+    few = PerceptionSettings().health.min_dots
+    dark = [(i, len(d)) for i, d in ((1, result.dots1), (2, result.dots2)) if len(d) < few]
+    if dark:
         import sys
 
         print(
             "perceive: no laser dots found in camera "
-            + " or ".join(str(i) for i, d in ((1, result.dots1), (2, result.dots2)) if len(d) == 0)
+            + " or ".join(f"{i}" + (f" (only {n} spots)" if n else "") for i, n in dark)
             + ": is the laser on in the base pictures and off in the mask ones (not swapped)?",
             file=sys.stderr,
         )
