@@ -74,6 +74,9 @@ STOPPING_FAULTS = (
 #: A capture whose dots fit the calibration less than this (share on a calibrated laser beam,
 #: ``PointCloud.calibration_fit``) means the rig was knocked: the pipeline's own threshold.
 _MIN_CALIBRATION_FIT = HealthSettings().min_explained
+# this many dots off the floor without a beam make a capture unusable (a ghost or two pair by
+# chance; an obstacle lights dozens)
+_MIN_NOT_UNDERSTOOD = 3
 
 
 class StatusSample(Protocol):
@@ -166,6 +169,8 @@ class ControlCore:
         self.perception_time_s: float | None = None
         # the last capture did not fit the calibration (the rig was knocked): no forward motion
         self.calibration_lost = False
+        # the last capture had dots no known beam explains (floor-only calibration): not used
+        self.not_understood = False
         self.last_report: CycleReport | None = None
         self._last_step_s: float | None = None
         # (t, x, y, θ, path length): odometry for late perception and the travel bound
@@ -247,6 +252,19 @@ class ControlCore:
                 )
             self.calibration_lost = True
             return
+        if cloud.not_understood >= _MIN_NOT_UNDERSTOOD:
+            # dots off the floor that no known beam explains (floor-only calibration): that area
+            # is not free space, and the capture is kept out of the map — perception goes stale
+            # and the freshness rule stops the chair, as with no capture
+            if not self.not_understood:
+                log.warning(
+                    "perception: %d dots off the floor not understood (the laser's source is "
+                    "unknown: recalibrate with --extra); such captures are not used",
+                    cloud.not_understood,
+                )
+            self.not_understood = True
+            return
+        self.not_understood = False
         if self.calibration_lost and math.isfinite(fit):
             log.warning("calibration_lost cleared: %.0f %% of the dots fit again", 100 * fit)
             self.calibration_lost = False
