@@ -564,8 +564,8 @@ class Daemon:
                             self.stats.jobs_superseded += 1
                         self._job_ready.set()
                     self._apply_capture()
-                    if cycle.laser_on != before:
-                        self._kick()  # the laser bit goes on the wire now, not in 20–40 ms
+                    if cycle.laser_on != before and cycle.settings.policy == "stream":
+                        self._kick()  # timed to the frames: the laser bit goes out now
                     if cycle.wants_frame():
                         self._frames_wanted.set()
                 except Exception as exc:  # a bug here must not end perception for good

@@ -727,7 +727,7 @@ class Simulator:
             return False
         self.controller.laser_on = cycle.laser_on
         self.controller.capturing = cycle.capturing
-        return cycle.laser_on != before
+        return cycle.laser_on != before and cycle.settings.policy == "stream"
 
     def _perception_step(
         self,
@@ -779,5 +779,7 @@ class Simulator:
         if self.drives_laser:
             self.controller.laser_on = cycle.laser_on
             self.controller.capturing = cycle.capturing
-            return cycle.laser_on != before
+            # stream: a switch timed to the frames goes out at once (the daemon's extra cycle);
+            # stationary: with the next control cycle
+            return cycle.laser_on != before and cycle.settings.policy == "stream"
         return False

@@ -302,13 +302,6 @@ def test_reactive_rider_moves_on_after_a_timeout_when_the_chair_never_does():
     assert result.duration_s == pytest.approx(4.0 + 0.5 + 1.0, abs=0.05)
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="the closed-loop pipeline story passes on 1 seed of 6 on main before this change "
-    "(seed 0 only; seeds 1, 2, 5 meet the matcher's phantom row at the wide passage, 3 and 4 "
-    "the approach cap's asymptotic turn towards box 3): a noise realisation, not a rate — see "
-    "docs/framerate.md; the matcher (issue 9b) and the turn rule (issue 13) own the causes",
-)
 def test_demo_story_with_pipeline_perception():
     """The demo as `omnid demo` runs it: wide passage passed, narrow refused, stop before the
     stairs, turn towards box 3 (outside the laser's field) refused, nothing touched."""
