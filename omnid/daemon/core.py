@@ -46,6 +46,7 @@ import numpy as np
 from omnid.core.freespace import FreeSpaceMap
 from omnid.core.kinematics import wheel_speeds
 from omnid.core.occupancy import OccupancyGrid
+from omnid.core.pipeline import HealthSettings
 from omnid.core.types import PointCloud
 from omnid.daemon.arming import Arming
 from omnid.daemon.config import OmnidConfig
@@ -68,6 +69,14 @@ log = logging.getLogger(__name__)
 STOPPING_FAULTS = (
     FAULT_WATCHDOG | FAULT_OVERCURRENT_LEFT | FAULT_OVERCURRENT_RIGHT | FAULT_UNDERVOLTAGE
 )
+
+
+#: A capture whose dots fit the calibration less than this (share on a calibrated laser beam,
+#: ``PointCloud.calibration_fit``) means the rig was knocked: the pipeline's own threshold.
+_MIN_CALIBRATION_FIT = HealthSettings().min_explained
+# this many dots off the floor without a beam make a capture unusable (a ghost or two pair by
+# chance; an obstacle lights dozens)
+_MIN_NOT_UNDERSTOOD = 3
 
 
 class StatusSample(Protocol):
@@ -158,6 +167,10 @@ class ControlCore:
         self.halt = False  # shutting down: stop at the emergency rate whatever the rider asks
         self.status: StatusSample | None = None
         self.perception_time_s: float | None = None
+        # the last capture did not fit the calibration (the rig was knocked): no forward motion
+        self.calibration_lost = False
+        # the last capture had dots no known beam explains (floor-only calibration): not used
+        self.not_understood = False
         self.last_report: CycleReport | None = None
         self._last_step_s: float | None = None
         # (t, x, y, θ, path length): odometry for late perception and the travel bound
@@ -227,6 +240,34 @@ class ControlCore:
     def on_perception(self, cloud: PointCloud, capture_time_s: float) -> None:
         """A perception result for frames taken at ``capture_time_s``: into the map, compensated
         for the motion since then."""
+        fit = cloud.calibration_fit
+        if math.isfinite(fit) and fit < _MIN_CALIBRATION_FIT:
+            # garbage in: keep it out of the map, and refuse forward motion until a capture
+            # fits again (omnid.core.pipeline.CalibrationHealth)
+            if not self.calibration_lost:
+                log.error(
+                    "calibration_lost: only %.0f %% of the dots lie on a calibrated laser beam: "
+                    "the rig has moved since calibration; forward motion refused (recalibrate)",
+                    100 * fit,
+                )
+            self.calibration_lost = True
+            return
+        if cloud.not_understood >= _MIN_NOT_UNDERSTOOD:
+            # dots off the floor that no known beam explains (floor-only calibration): that area
+            # is not free space, and the capture is kept out of the map — perception goes stale
+            # and the freshness rule stops the chair, as with no capture
+            if not self.not_understood:
+                log.warning(
+                    "perception: %d dots off the floor not understood (the laser's source is "
+                    "unknown: recalibrate with --extra); such captures are not used",
+                    cloud.not_understood,
+                )
+            self.not_understood = True
+            return
+        self.not_understood = False
+        if self.calibration_lost and math.isfinite(fit):
+            log.warning("calibration_lost cleared: %.0f %% of the dots fit again", 100 * fit)
+            self.calibration_lost = False
         then = self._pose_at(capture_time_s)
         if then is not None and self._poses:
             _, x1, y1, th1, _ = self._poses[-1]
@@ -421,6 +462,9 @@ class ControlCore:
         if self.capturing and cfg.perception.capture_policy == "limit":
             cap = cfg.perception.capture_speed_mm_s
             v_req = min(max(v_req, -cap), cap)
+        if self.calibration_lost and v_req > 0:
+            v_req = 0.0
+            reasons.append(Reason.CALIBRATION_LOST)
         if not self.camera_ok:
             cap = cfg.safety.camera_lost_speed_mm_s
             if abs(v_req) > cap:

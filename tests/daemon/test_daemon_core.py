@@ -261,3 +261,45 @@ def test_after_a_control_unit_fault_motion_waits_for_the_riders_release():
             core.on_status(Status(0, 0, 0, True, 0, t + 1.5))
             core.step(t + 1.5)
             assert any(turning(t + 1.5 + 0.02 * k) for k in range(1, 30))
+
+
+def test_a_capture_that_does_not_fit_the_calibration_refuses_forward(caplog):
+    """The rig knocked out of calibration (few dots on a calibrated beam): the core says so,
+    keeps the capture out of the map and refuses forward motion until a capture fits again."""
+    from dataclasses import replace
+
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 1.0, 1.5))
+    updates = len(m.clouds)
+    core.on_perception(replace(floor_cloud(), calibration_fit=0.1), 1.5)
+    cmds = run(core, chair, 1.5, 3.0)
+    assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
+    assert Reason.CALIBRATION_LOST in core.last_report.reasons
+    assert "calibration_lost" in caplog.text
+    assert len(m.clouds) == updates  # the misfit capture never reached the map
+    core.on_perception(replace(floor_cloud(), calibration_fit=0.95), 3.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 3.0, 4.5))
+
+
+def test_a_capture_with_dots_not_understood_stays_out_of_the_map(caplog):
+    """A floor-only calibration met an obstacle it cannot read (source unknown, not placed by
+    the capture): the capture is kept out of the map, so the area is not taken as free and the
+    chair stops as perception goes stale; a capture read in full is used again."""
+    from dataclasses import replace
+
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 1.0, 1.5))
+    updates, fresh = len(m.clouds), core.perception_time_s
+    core.on_perception(replace(floor_cloud(), not_understood=40), 1.5)
+    assert len(m.clouds) == updates and "not understood" in caplog.text
+    assert core.perception_time_s == fresh  # not fresh perception: it goes stale
+    cmds = run(core, chair, 1.5, 5.0, perceive=False)  # no usable capture since: stopped
+    assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
+    core.on_perception(replace(floor_cloud(), not_understood=1), 5.0)  # a ghost pair: used
+    assert len(m.clouds) == updates + 1

@@ -23,7 +23,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -31,11 +30,7 @@ from omnid.core.geometry import StereoRig
 from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
 from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
 from omnid.sim.frame_server import FrameServer
-from omnid.sim.laser import ideal_lattice
-from omnid.sim.render import render_capture
-
-# ideal_lattice(): today's `best` matcher and floor calibration assume the regular slope lattice
-# (issue 9: laser-match switches this to a real laser when its matcher lands).
+from omnid.sim.installation import installation_captures, write_installation
 
 FLOOR_MM = 1100.0
 NEUTRAL = (1.5, -1.0)  # the rider's head at rest (roll, pitch), deg: calibrated at start
@@ -71,15 +66,16 @@ def hold(gs: Gs311Emulator, angles: tuple[float, float]) -> None:
 
 @pytest.fixture(scope="module")
 def floor_frames(tmp_path_factory) -> tuple[Path, object]:
-    """An empty floor seen by the nominal rig, and ``omnid calibrate`` run on it (subprocess)."""
+    """The installer's captures (empty floor, a box, a wall) seen by the nominal rig with the
+    simulator's laser, and ``omnid calibrate`` run on them (subprocess)."""
     d = tmp_path_factory.mktemp("floor")
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    cap = render_capture(rig, ideal_lattice().on_plane(FLOOR_MM), seed=3)
+    extras = write_installation(rig, d, seed=3)
+    cap = installation_captures(rig, seed=3)[0]
     names = ("mask1", "base1", "mask2", "base2")
-    for name in names:
-        cv2.imwrite(str(d / f"{name}.png"), getattr(cap, name))
     calib = d / "calib.yaml"
-    args = [a for n in names for a in (f"--{n}", str(d / f"{n}.png"))]
+    args = [a for n in names for a in (f"--{n}", str(d / f"floor_{n}.png"))]
+    args += [a for e in extras for a in ("--extra", str(e))]
     out = subprocess.run(
         [
             sys.executable,
