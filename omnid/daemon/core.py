@@ -381,6 +381,7 @@ class ControlCore:
         demand = self.mux.decide(now_s)
         if self.halt:
             demand = RiderDemand(stop=True, source="daemon", reason="shutdown_stale")
+        self.arming.observe(self.mux, now_s)
         # inputs that went stale during a stall are the stall's doing, not a fault of their own
         lost = self._inputs_lost(now_s)
         loop_stalled = gap > cfg.control_unit.max_command_age_s + 1e-6
@@ -412,7 +413,14 @@ class ControlCore:
             return self._zero(now_s, demand, code)
         if loop_stalled:
             self.arming.filter(demand, self.mux, now_s)  # a release is a release, even now
-            return self._zero(now_s, demand, Reason.FAULT)
+            ramp = self.motion.ramp
+            v, w = ramp.v_mm_s, ramp.omega_rad_s
+            cmd = self._zero(now_s, demand, Reason.FAULT)
+            if gap < cfg.control_unit.unit_watchdog_s:
+                # the unit kept the wheels going through the stall: resume from the ramp's
+                # speed (integrators reset), not from a standstill the chair never reached
+                ramp.v_mm_s, ramp.omega_rad_s = v, w
+            return cmd
         for name in lost:
             self.arming.on_fault(f"{name}_lost", now_s)
         if (

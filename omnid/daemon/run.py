@@ -392,12 +392,8 @@ class Daemon:
 
     def _loop_healthy(self, now: float, cycle_ok: bool, late_s: float) -> bool:
         """What WATCHDOG=1 vouches for: this cycle succeeded, on time, and the link task runs."""
-        link_task = self.link._task
         return (
-            cycle_ok
-            and late_s <= self.config.control_unit.max_command_age_s
-            and link_task is not None
-            and not link_task.done()
+            cycle_ok and late_s <= self.config.control_unit.max_command_age_s and self.link.running
         )
 
     def _inject(self, what: str) -> None:

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from daemon_helpers import RecordingMap, Status, Stick, Tilt, floor_cloud
+from daemon_helpers import RecordingMap, Status, Stick, Tilt, arm, floor_cloud
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -26,7 +26,9 @@ def make_core(**rider) -> tuple[ControlCore, RecordingMap]:
         )
     )
     m = RecordingMap(cfg.freespace.grid)
-    return ControlCore(cfg, world_map=m), m
+    core = ControlCore(cfg, world_map=m)
+    arm(core)
+    return core, m
 
 
 class Chair:
@@ -144,6 +146,7 @@ def test_stale_perception_refuses_forward():
 def test_obstacle_stops_the_chair_before_it():
     core, _m = make_core()
     core = ControlCore(core.config)  # the real free-space map
+    arm(core)
     chair = Chair()
     core.on_perception(floor_cloud(obstacle_x_mm=1200.0), 0.0)  # wall 1500 mm ahead of the axle
     cmds = run(core, chair, 0.0, 15.0)
@@ -214,6 +217,7 @@ def test_joystick_source_drives_turn():
         )
     )
     core = ControlCore(cfg, world_map=m)
+    arm(core)
     free_map(m)
     chair = Chair()
     for t in np.arange(0.0, 1.0, DT):

@@ -257,7 +257,11 @@ class ControlUnitEmulator:
                 self._throttle.warning("stale", "%s: command refused: %s", self.name, why)
         else:
             self._armed = True
-        if self._cycle is None or codec.cycle_ahead(self._cycle, cmd.cycle) > 0:
+        if not cmd.enabled:
+            # a stop re-arms and re-synchronises: a restarted master counts from its own cycle
+            if self._cycle != cmd.cycle:
+                self._cycle, self._cycle_since = cmd.cycle, now
+        elif self._cycle is None or codec.cycle_ahead(self._cycle, cmd.cycle) > 0:
             self._cycle, self._cycle_since = cmd.cycle, now
         self._enabled = drive
         self._duty = (cmd.left_duty, cmd.right_duty) if self._enabled else (0.0, 0.0)
