@@ -40,6 +40,8 @@ sums; thresholds are still in gray levels of the mean.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -48,6 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import Settings, require, setting
+from omnid.core import spotfit
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -98,8 +101,9 @@ class DetectionParams(Settings):
         5, 2, 20
     )  # local background: min filter of this radius, px
     best_min_contrast: float = setting(
-        0.5, 0.0, 0.99
-    )  # (peak − ring 3 px out) / peak ≥ this: dots are compact
+        0.2, 0.0, 0.99
+    )  # compact: the peak's own curvature predicts (peak − ring) / peak ≥ this on a ring of
+    # 1.6 smoothed spot sigmas (3 px for 1.3 px spots); 0.2 passes spots stretched to 2.2x
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -298,6 +302,42 @@ def _laser_difference(mask: NDArray, base: NDArray, weights: tuple[float, float,
     return to_gray(base, weights) - to_gray(mask, weights)
 
 
+def _laser_gray(image: NDArray, weights: tuple[float, float, float]) -> NDArray:
+    """The laser's gray of one frame (the channel or combination :func:`_laser_difference`
+    subtracts), uint8 for an 8-bit single-channel laser gray, else float32."""
+    if image.dtype == np.uint8:
+        if image.ndim == 2:
+            return image
+        nz = np.flatnonzero(np.asarray(weights, dtype=np.float64))
+        if len(nz) == 1:
+            return image[:, :, int(nz[0])]
+    return to_gray(image, weights)
+
+
+#: Frame pixels darker than this (gray) say nothing about the flicker gain.
+_FLICKER_MIN_GRAY = 16.0
+#: A flicker gain smaller than this is left alone.
+_FLICKER_MIN_GAIN = 0.003
+
+
+def _flicker_gain(d: NDArray, mask_gray: NDArray, noise: float) -> float:
+    """The illumination change from mask to base as a gain g: the subtracted image holds
+    g · mask besides the laser (mains flicker, auto exposure). The median of d / mask over a
+    subsample of rows (24), where the mask is lit; the laser's dots are too few to move it.
+    0 when the copy stays within two noise sigmas (g · the lit scene's mean): then it holds no
+    edge the local background (:func:`_background_half`) and the compactness test would not
+    deal with anyway."""
+    step = max(d.shape[0] // 24, 1)
+    m = mask_gray[::step].astype(np.float32)
+    lit = m >= np.float32(_FLICKER_MIN_GRAY)
+    if np.count_nonzero(lit) < 64:
+        return 0.0
+    ratio = d[::step][lit] / m[lit]
+    mid = len(ratio) // 2
+    gain = float(np.partition(ratio, mid)[mid])
+    return gain if abs(gain) * float(m[lit].mean()) >= 2.0 * noise else 0.0
+
+
 def _noise_sigma(d: NDArray) -> float:
     """Robust noise sigma of an image, gray levels: MAD of horizontal neighbour differences
     (on a subsample of rows), divided by √2 for the difference of two samples.
@@ -374,6 +414,102 @@ def _box_of(
     )
 
 
+#: Spot sizes the matched filter follows (sigma, px): the estimate is clipped to this range.
+_SPOT_SIGMA_RANGE_PX = (0.8, 3.5)
+#: A filtered maximum pulled further than this by a neighbour (first-order estimate, px) is
+#: fitted jointly with it; smaller pulls are taken back to first order.
+_FIRST_ORDER_PX = 0.1
+#: With fewer unclipped dots than this, the spot size comes from a censored fit.
+_MIN_UNCLIPPED = 16
+#: How many of the brightest dots that fit uses.
+_SIZE_FIT_SAMPLE = 48
+#: Outside the mirror's disk the camera sees its dark housing (SPEC §6): a mask-frame pixel
+#: darker than this (gray) is not the scene.
+_HOUSING_GRAY = 12.0
+#: Spots larger than this (sigma, px) get their own matched filter for the centres.
+_MATCHED_FROM_PX = 1.5
+#: The 3x3 neighbourhood of a peak and the least-squares solve of a quadratic through it:
+#: ln F ≈ a + b_r·r + b_c·c + q_r·r² + q_c·c² + q_rc·r·c on the matched-filtered image F.
+_Q_OFF_R, _Q_OFF_C = (a.ravel() for a in np.meshgrid((-1, 0, 1), (-1, 0, 1), indexing="ij"))
+_Q_DESIGN = np.column_stack(
+    [np.ones(9), _Q_OFF_R, _Q_OFF_C, _Q_OFF_R**2, _Q_OFF_C**2, _Q_OFF_R * _Q_OFF_C]
+).astype(np.float64)
+_Q_SOLVE32 = np.linalg.pinv(_Q_DESIGN).T.astype(np.float32)  # (9, 6): log values @ this
+
+
+def _log_quadratic(
+    f: NDArray, rows: NDArray[np.intp], cols: NDArray[np.intp]
+) -> tuple[
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.bool_],
+]:
+    """Sub-pixel maximum of ``f`` near each peak pixel from a quadratic fitted to ln f on its
+    3x3 neighbourhood (a Gaussian's logarithm is exactly quadratic, so on a smoothed spot this
+    is the maximum of the smoothed image). Returns (row, col, the smoothed spot's variance
+    px² — the mean over the two axes —, the larger of its two principal variances, and
+    whether the quadratic is a maximum within 1 px)."""
+    vals = np.lib.stride_tricks.sliding_window_view(f, (3, 3))[rows - 1, cols - 1].reshape(-1, 9)
+    top = vals[:, 4:5]
+    logs = np.log(np.maximum(vals, np.float32(1e-3) * np.maximum(top, np.float32(1e-3))))
+    _, br, bc, qr, qc, qrc = (logs @ _Q_SOLVE32).T.astype(np.float64)
+    det = 4.0 * qr * qc - qrc * qrc
+    ok = (qr < 0) & (qc < 0) & (det > 1e-12)
+    safe = np.where(ok, det, 1.0)
+    dr = -(2.0 * qc * br - qrc * bc) / safe
+    dc = -(2.0 * qr * bc - qrc * br) / safe
+    ok &= (np.abs(dr) <= 1.0) & (np.abs(dc) <= 1.0)
+    mean_var = np.where(ok, -1.0 / np.minimum(qr + qc, -1e-9), np.inf)  # −1/(2·mean(q_r, q_c))
+    # The flatter principal curvature of the quadratic form [[q_r, q_rc/2], [q_rc/2, q_c]].
+    flat = 0.5 * (qr + qc) + np.sqrt(0.25 * (qr - qc) ** 2 + 0.25 * qrc * qrc)
+    max_var = np.where(ok & (flat < 0), -0.5 / np.minimum(flat, -1e-12), np.inf)
+    return rows + np.clip(dr, -1, 1), cols + np.clip(dc, -1, 1), mean_var, max_var, ok
+
+
+def _spot_sigma(mean_var: NDArray[np.float64], peak: NDArray) -> float:
+    """The image's spot size (Gaussian sigma, px) from the curvature of the σ = 1 px smoothed
+    image at its peaks (``mean_var`` of :func:`_log_quadratic`): a spot of sigma σ there has
+    the variance σ² + 1 + 1/12 (the smoothing and the pixel's own box). The median over the
+    brighter half of the peaks (the brightest alone would favour the larger spots, whose
+    smoothed peaks are higher); a clipped or flat top reads wider, which is what its matched
+    filter should be."""
+    if len(peak) > 1:
+        mean_var = mean_var[peak >= np.partition(peak, len(peak) // 2)[len(peak) // 2]]
+    good = mean_var[np.isfinite(mean_var)]
+    if len(good) == 0:
+        return 1.3
+    sigma2 = float(np.median(good)) - 1.0 - 1.0 / 12.0
+    lo, hi = _SPOT_SIGMA_RANGE_PX
+    return float(np.clip(math.sqrt(max(sigma2, lo * lo)), lo, hi))
+
+
+def _clipped_sigma(
+    d: NDArray[np.float32],
+    saturated: NDArray[np.bool_] | None,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    centre: NDArray,
+    ok: NDArray[np.bool_],
+    start_px: float,
+) -> float:
+    """The spot size when the sensor clipped the tops: the median sigma of the censored
+    least-squares fit (:func:`~omnid.core.spotfit.fit_spots`) of the brightest
+    :data:`_SIZE_FIT_SAMPLE` peaks, whose clipped pixels only bound the light from below."""
+    lo, hi = _SPOT_SIGMA_RANGE_PX
+    k = np.flatnonzero(ok)
+    if len(k) == 0:
+        return start_px
+    k = k[np.argsort(centre[k])[-_SIZE_FIT_SAMPLE:]]
+    start = float(np.clip(start_px, lo, 2.5))
+    peak = centre[k] * (start * start + 1.0) / (start * start)
+    _, _, _, s = spotfit.fit_spots(d, saturated, rows[k], cols[k], start, peak, start=(r[k], c[k]))
+    return float(np.clip(np.median(s), lo, hi))
+
+
 def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np.float64]:
     """Sub-pixel dot centres.
 
@@ -386,12 +522,21 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
        smoothed peak above the threshold, and ≥ ~0.69 of that at half resolution (the pyramid
        samples every other pixel), so only a lone dot barely above the threshold, outside the
        box of all the others, can be lost to the box;
-    4. candidates: local maxima (3x3) of a Gaussian-smoothed copy (σ = 1 px, close to a matched
-       filter for the dots) above ``best_min_peak_gray`` and ``best_snr`` noise sigmas, and
-       compact: ``best_min_contrast`` against the ring 3 px out (rejects edges and grains on
-       slopes), and at least ``best_relative_peak`` of the brightest value within
-       ``best_relative_radius_px`` (rejects speckle grains in a dot's halo and dim ghosts);
-    5. centre: a weighted Gaussian fit on the 5x5 background-free pixels, see :func:`_refine`.
+    4. the illumination change between the frames (:func:`_flicker_gain`) is taken out as
+       gain · mask when it stands above the noise (it copies the scene, sharp edges and all);
+    5. candidates: local maxima (3x3) of a σ = 1 px smoothed copy above ``best_min_peak_gray``
+       and ``best_snr`` noise sigmas; compact (``best_min_contrast``, judged from each peak's
+       own curvature, see below) and at least ``best_relative_peak`` of the brightest value
+       within ``best_relative_radius_px`` (more for large spots; rejects speckle grains in a
+       dot's halo and dim ghosts). The spot size σ is measured from the same curvatures
+       (:func:`_spot_sigma`; from a censored fit where the sensor clipped every top);
+    6. centre: the maximum of the matched-filtered image (:func:`_log_quadratic`; the 1 px
+       smoothing for spots up to 1.5 px, a Gaussian of σ beyond) — for a Gaussian spot the
+       least-squares (maximum-likelihood) centre, and for any spot that is point-symmetric
+       about its centre (flat, clipped or stretched tops, halos) the centre itself. A
+       neighbour's light pulls a filtered maximum toward it (:func:`_neighbour_pull`): small
+       pulls are taken back to first order, large ones (big spots, close beams) by fitting the
+       dots concerned jointly (:func:`~omnid.core.spotfit.fit_spots`).
 
     Cost: the full frame is touched only by the subtraction (int16 for 8-bit input), the
     noise estimate (a few rows) and one pyramid step; every other filter runs at half
@@ -400,9 +545,22 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
     full = _laser_difference(mask, base, p.bgr_weights)
     h_img, w_img = full.shape
     noise = _noise_sigma(full)
-    # The smoothing divides white noise by about 2·√π·σ = 3.5.
+    # The σ = 1 px smoothing divides white noise by about 2·√π·σ = 3.5.
     threshold = max(p.best_min_peak_gray, p.best_snr * noise / 3.5)
     small = np.asarray(cv2.pyrDown(full), dtype=np.float32)
+    mask_gray = _laser_gray(mask, p.bgr_weights)
+    gain = _flicker_gain(full, mask_gray, noise)
+    flicker: NDArray[np.float32] | None = None  # the scene's copy in the subtracted image
+    clip = None if base.dtype.kind == "f" else float(np.iinfo(base.dtype).max)
+    if abs(gain) >= _FLICKER_MIN_GAIN:
+        # The scene's copy, sharp edges (the mirror's rim) and all, taken out exactly; where
+        # the base frame clips, the copy is only what was left below the clip level.
+        if clip is not None and float(mask_gray.max()) * (1.0 + gain) > clip:
+            m = mask_gray.astype(np.float32)
+            flicker = np.minimum(np.float32(gain) * m, np.float32(clip) - m)
+            small -= np.asarray(cv2.pyrDown(flicker), dtype=np.float32)
+        else:
+            small -= np.float32(gain) * np.asarray(cv2.pyrDown(mask_gray), dtype=np.float32)
     bg_half = _background_half(small, p.best_background_radius_px, noise)
     if min(h_img, w_img) < _MIN_PYRAMID_PX:
         r0, r1, c0, c1 = 0, h_img, 0, w_img
@@ -413,29 +571,41 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
             return _empty()
         r0, r1, c0, c1 = box
     sub = full[r0:r1, c0:c1].astype(np.float32)
+    if flicker is not None:
+        sub -= flicker[r0:r1, c0:c1]
+    elif abs(gain) >= _FLICKER_MIN_GAIN:
+        sub -= np.float32(gain) * mask_gray[r0:r1, c0:c1].astype(np.float32)
     h, w = sub.shape
     # pyrUp puts half-resolution pixel i at full-resolution pixel 2i, as pyrDown took it.
     part = bg_half[r0 // 2 : (r1 + 1) // 2 + 1, c0 // 2 : (c1 + 1) // 2 + 1]
     d = sub - cv2.pyrUp(part)[:h, :w]
     sm = cv2.GaussianBlur(d, (7, 7), 1.0)
-    peaks = sm >= cv2.dilate(sm, np.ones((3, 3), np.uint8))
-    peaks &= sm > threshold
-    # The 5x5 fit and the contrast ring need 3 px around the peak inside the image.
-    peaks[: max(3 - r0, 0), :] = False
-    peaks[h - max(3 - (h_img - r1), 0) :, :] = False
-    peaks[:, : max(3 - c0, 0)] = False
-    peaks[:, w - max(3 - (w_img - c1), 0) :] = False
-    flat = np.flatnonzero(peaks)  # (much faster than np.nonzero on a 2-D mask)
-    rows, cols = np.divmod(flat, w)
+    rows, cols = _local_maxima(sm, threshold, 3, (r0, r1, c0, c1), (h_img, w_img))
     centre = sm[rows, cols]
-    if p.best_min_contrast > 0 and len(rows):
-        # A dot is compact: its smoothed peak stands well above the ring 3 px around it; edges
-        # (the mirror rim in a flickering capture) and grains on a dot's slope do not.
-        ring = sum(sm[rows + dr, cols + dc] for dr, dc in _RING3) / np.float32(len(_RING3))
-        ok = centre - ring >= p.best_min_contrast * centre
-        rows, cols, centre = rows[ok], cols[ok], centre[ok]
+    r, c, mean_var, max_var, ok = _log_quadratic(sm, rows, cols)
+    # A top within 1 px of a clipped pixel of the base frame is flattened by the sensor.
+    clipped = _clipped_near(base, p.bgr_weights, rows + r0, cols + c0)
+    saturated = _saturated(base, p.bgr_weights, (r0, r1, c0, c1)) if clipped.any() else None
+    # The blur is measured where the sensor did not clip; where it clipped (nearly) every dot,
+    # by the censored fit of the brightest of them.
+    if np.count_nonzero(~clipped) >= _MIN_UNCLIPPED:
+        sigma = _spot_sigma(mean_var[~clipped], centre[~clipped])
+    else:
+        sigma = _clipped_sigma(
+            d, saturated, rows, cols, r, c, centre, ok, _spot_sigma(mean_var, centre)
+        )
+    spread2 = sigma * sigma + 1.0 + 1.0 / 12.0  # a spot's variance after the σ = 1 smoothing
+    if p.best_min_contrast > 0:
+        # A dot is compact for its size: its smoothed peak falls off in every direction. The
+        # contrast against a ring 1.6 smoothed spot sigmas out is predicted from the peak's own
+        # flatter curvature (a Gaussian of variance v falls to exp(−R²/2v) at R), so that
+        # neighbours overlapping a large spot on that ring do not fail it; a flickering edge
+        # (the mirror's rim) or a plateau is flat along it.
+        ring2 = 1.6 * 1.6 * spread2
+        ok &= max_var <= ring2 / (-2.0 * math.log(1.0 - p.best_min_contrast))
+    rows, cols, centre, r, c = rows[ok], cols[ok], centre[ok], r[ok], c[ok]
     if p.best_relative_peak > 0 and len(rows):
-        rad = p.best_relative_radius_px
+        rad = max(p.best_relative_radius_px, round(1.6 * math.sqrt(spread2)))
         disk = _disk(rad)
         src, off = sm, rad
         if min(rows.min(), cols.min()) < rad or rows.max() >= h - rad or cols.max() >= w - rad:
@@ -444,21 +614,174 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
             off = 0
         near = np.lib.stride_tricks.sliding_window_view(src, disk.shape)[rows - off, cols - off]
         ok = centre >= p.best_relative_peak * near[:, disk].max(axis=1)
-        rows, cols, centre = rows[ok], cols[ok], centre[ok]
+        rows, cols, centre, r, c = rows[ok], cols[ok], centre[ok], r[ok], c[ok]
     if len(rows) == 0:
         return _empty()
-    r, c = _refine(d, rows, cols)
+    # Dots the mirror's rim cuts (the housing outside the mirror is dark in the mask frame) are
+    # centred on the pixels that see them.
+    cut = _cut_by_rim(_laser_gray(mask, p.bgr_weights), rows + r0, cols + c0)
+    # Centres: the maximum of the matched-filtered image. The σ = 1 px smoothing is within a
+    # few per cent of the matched filter's efficiency for spots up to 1.5 px; larger spots get
+    # their own (candidates stay those of the 1 px smoothing, which keeps close spots apart).
+    smooth_px = 1.0
+    if sigma > _MATCHED_FROM_PX:
+        smooth_px = float(min(sigma, _SPOT_SIGMA_RANGE_PX[1]))
+        sm = cv2.GaussianBlur(d, (0, 0), smooth_px)
+        rm, cm, _, _, ok = _log_quadratic(sm, rows, cols)
+        r, c = np.where(ok, rm, r), np.where(ok, cm, c)  # else keep the 1 px filter's
+    filtered_var = sigma * sigma + smooth_px * smooth_px + 1.0 / 12.0
+    pull_r, pull_c, strong = _neighbour_pull(r, c, sm[rows, cols], filtered_var, (h, w))
+    # A neighbour's light pulls a filtered maximum toward it: taken back to first order, and
+    # where that is not enough, the dots are fitted jointly.
+    weak = ~strong
+    r[weak] -= pull_r[weak]
+    c[weak] -= pull_c[weak]
+    if strong.any():
+        k = np.flatnonzero(strong)
+        peak = centre[k] * spread2 / (sigma * sigma)  # the spot's own peak from the smoothed
+        fr, fc, _, _ = spotfit.fit_spots(
+            d, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k])
+        )
+        moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5  # a fit that wandered off keeps the filter's
+        r[k[moved]], c[k[moved]] = fr[moved], fc[moved]
+    if cut.any():
+        k = np.flatnonzero(cut)
+        r[k], c[k] = _refine(d, rows[k], cols[k])
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
 
 
+def _cut_by_rim(
+    mask_gray: NDArray, rows: NDArray[np.intp], cols: NDArray[np.intp]
+) -> NDArray[np.bool_]:
+    """(n,) dots with a pixel of the dark housing (mask frame below :data:`_HOUSING_GRAY`)
+    within 2 px: their light is cut by the mirror's rim. Peaks lie ≥ 3 px inside the image."""
+    if len(rows) == 0:
+        return np.zeros(0, dtype=bool)
+    near = np.lib.stride_tricks.sliding_window_view(mask_gray, (5, 5))[rows - 2, cols - 2]
+    return np.asarray(near.reshape(len(rows), 25).min(axis=1) < _HOUSING_GRAY)
+
+
+def _neighbour_pull(
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    top: NDArray[np.float32],
+    filtered_var: float,
+    shape: tuple[int, int],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """How far each dot's filtered maximum is pulled by its neighbours' light (row, col, px),
+    and which dots are pulled so hard (more than :data:`_FIRST_ORDER_PX`) that they, and the
+    neighbours pulling them, must be fitted jointly instead.
+
+    For Gaussian spots of filtered variance v, a neighbour at c_j with a filtered peak
+    ``ratio`` times the dot's moves the dot's maximum by ratio · exp(−d²/2v) · (c_j − c_i)
+    (first order in the neighbour's light). A box filter over the dots' pixels first finds
+    those with another dot within the distance where a twice as bright neighbour would move
+    it by :data:`~omnid.core.spotfit.COUPLING_PX` (:func:`_pull_reach_px`); only those are
+    paired, so well separated dots cost one filter.
+    """
+    n = len(r)
+    pull_r, pull_c = np.zeros(n), np.zeros(n)
+    strong = np.zeros(n, dtype=bool)
+    if n < 2:
+        return pull_r, pull_c, strong
+    half = round(_pull_reach_px(filtered_var))
+    ri = np.clip(np.rint(r).astype(np.intp), 0, shape[0] - 1)
+    ci = np.clip(np.rint(c).astype(np.intp), 0, shape[1] - 1)
+    at = np.zeros(shape, dtype=np.uint8)
+    at[ri, ci] = 1  # filtered maxima are ≥ 2 px apart: no two share a pixel
+    k = 2 * half + 1
+    near = cv2.boxFilter(at, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    close = np.flatnonzero(near[ri, ci] > 1)  # (uint8 saturates at 255: still > 1)
+    if len(close) < 2:
+        return pull_r, pull_c, strong
+    i, j = spotfit.near_pairs(r[close], c[close], half + 1, sort=False)
+    i, j = close[i], close[j]
+    dr, dc = r[j] - r[i], c[j] - c[i]
+    ratio = np.abs(top[j]) / np.maximum(np.abs(top[i]), 1e-6)
+    w = ratio * np.exp(-(dr * dr + dc * dc) / (2.0 * filtered_var))
+    pull_r = np.asarray(np.bincount(i, weights=w * dr, minlength=n), dtype=np.float64)
+    pull_c = np.asarray(np.bincount(i, weights=w * dc, minlength=n), dtype=np.float64)
+    hard = w * np.hypot(dr, dc) > _FIRST_ORDER_PX
+    strong[i[hard]] = True
+    strong[j[hard]] = True
+    return pull_r, pull_c, strong
+
+
+def _pull_reach_px(filtered_var: float, ratio: float = 2.0) -> float:
+    """The distance beyond which a neighbour ``ratio`` times as bright no longer moves a
+    filtered maximum by :data:`~omnid.core.spotfit.COUPLING_PX` (see :func:`_pulled`)."""
+    d = math.sqrt(filtered_var)  # the pull peaks at one filtered sigma, then falls
+    while ratio * d * math.exp(-d * d / (2.0 * filtered_var)) > spotfit.COUPLING_PX:
+        d += 0.1
+    return d
+
+
+def _local_maxima(
+    sm: NDArray,
+    threshold: float,
+    margin_px: int,
+    box: tuple[int, int, int, int],
+    shape: tuple[int, int],
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Local maxima (3x3) of ``sm`` above ``threshold`` at least ``margin_px`` inside the image
+    (``sm`` covers ``box`` = (r0, r1, c0, c1) of an image of ``shape``)."""
+    h, w = sm.shape
+    r0, r1, c0, c1 = box
+    peaks = sm >= cv2.dilate(sm, np.ones((3, 3), np.uint8))
+    peaks &= sm > threshold
+    m = margin_px
+    peaks[: max(m - r0, 0), :] = False
+    peaks[h - max(m - (shape[0] - r1), 0) :, :] = False
+    peaks[:, : max(m - c0, 0)] = False
+    peaks[:, w - max(m - (shape[1] - c1), 0) :] = False
+    flat = np.flatnonzero(peaks)  # (much faster than np.nonzero on a 2-D mask)
+    rows, cols = np.divmod(flat, w)
+    return rows, cols
+
+
+def _clipped_near(
+    base: NDArray,
+    weights: tuple[float, float, float],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+) -> NDArray[np.bool_]:
+    """(n,) whether the laser's channel of ``base`` reaches the sensor's largest value in the 3x3
+    pixels around each (row, col) — at least 1 px inside the image — (all False for float
+    images: no clip level)."""
+    if base.dtype.kind == "f" or len(rows) == 0:
+        return np.zeros(len(rows), dtype=bool)
+    gray = _laser_gray(base, weights)
+    top = np.iinfo(base.dtype).max
+    near = np.lib.stride_tricks.sliding_window_view(gray, (3, 3))[rows - 1, cols - 1]
+    return np.asarray(near.reshape(len(rows), 9).max(axis=1) >= top)
+
+
+def _saturated(
+    base: NDArray, weights: tuple[float, float, float], box: tuple[int, int, int, int]
+) -> NDArray[np.bool_] | None:
+    """Pixels of the box where the laser's channel of the base frame is clipped (the sensor's
+    largest value), or None where none is (and for images without a clip level: float)."""
+    if base.dtype.kind == "f":
+        return None
+    top = np.iinfo(base.dtype).max
+    r0, r1, c0, c1 = box
+    part = base[r0:r1, c0:c1]
+    if part.ndim == 3:
+        nz = np.flatnonzero(np.asarray(weights, dtype=np.float64))
+        clipped = np.any(part[:, :, nz] >= top, axis=2)
+        return clipped if clipped.any() else None
+    if cv2.minMaxLoc(part)[1] < top:
+        return None
+    return part >= top
+
+
+@functools.lru_cache(maxsize=16)
 def _disk(radius_px: int) -> NDArray[np.bool_]:
     """The (2r + 1)² boolean disk of cv2.MORPH_ELLIPSE: the neighbourhood of the relative test."""
     k = 2 * radius_px + 1
     return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dtype=bool)
 
 
-#: Eight points about 3 px from a peak, for the contrast test of the best method.
-_RING3 = ((-3, 0), (3, 0), (0, -3), (0, 3), (-2, -2), (-2, 2), (2, -2), (2, 2))
 #: Offsets of the 5x5 fitting window and its design matrix [1, r, c, r² + c²] (25, 4).
 _FIT_OFF = np.arange(-2, 3)
 _FIT_R, _FIT_C = (
@@ -472,14 +795,15 @@ _FIT_XX = (_FIT_X[:, :, None] * _FIT_X[:, None, :]).reshape(25, 16)
 def _refine(
     d: NDArray[np.float32], rows: NDArray[np.intp], cols: NDArray[np.intp]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Sub-pixel centres: an isotropic Gaussian fitted to the 5x5 pixels around each peak.
+    """Sub-pixel centres of dots the mirror's rim cuts: an isotropic Gaussian fitted to the
+    5x5 pixels around each peak that see it.
 
     ``ln I = a + b·r + c·c + e·(r² + c²)`` solved by least squares weighted by I² (the log's
     noise is ~σ/I; pixels below 5 % of the window's brightest are left out), all dots at once
     through batched 4x4 normal equations. The centre is (−b/2e, −c/2e), kept within ±1 px of
-    the peak pixel. On clean rendered dots this reaches ~1.5× the Cramér–Rao bound; a 5x5
-    centroid is 3× worse (truncation pulls it to the pixel centre), the per-axis 3-point
-    Gaussian 1.8× worse (measured while choosing; see docs/benchmarks/detection.md).
+    the peak pixel. A Gaussian's logarithm is quadratic on whatever part of it is seen, so the
+    cut does not move the centre (a smoothed image would spread the cut into it); the detector
+    used it for every dot before the spot models (~1.5x the Cramér–Rao bound on round spots).
     """
     windows = np.lib.stride_tricks.sliding_window_view(d, (5, 5))
     # Weights and logs in float32 (ample for 0.01 px; the sums below are float64).
