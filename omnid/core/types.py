@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -64,6 +65,10 @@ class PointCloud:
     pixels      (N, 4) matched image positions r1, c1, r2, c2, px
     classes     (N,) :class:`PointClass` codes (uint8)
     floor_depth_mm  the floor's depth H, so that height h = H − Z
+    calibration_fit  how well the capture fitted the calibration: the share of the dots both
+                cameras detected that a calibrated laser beam explains (1 = all; NaN = not
+                measured). A rig knocked out of calibration explains few (see
+                :class:`omnid.core.pipeline.CalibrationHealth`).
     """
 
     xyz: NDArray[np.float64] = field(default_factory=lambda: _empty((0, 3)))
@@ -71,6 +76,7 @@ class PointCloud:
     pixels: NDArray[np.float64] = field(default_factory=lambda: _empty((0, 4)))
     classes: NDArray[np.uint8] = field(default_factory=lambda: _empty((0,), np.uint8))
     floor_depth_mm: float = 1100.0
+    calibration_fit: float = math.nan
 
     def __post_init__(self) -> None:
         n = len(self.xyz)

@@ -71,6 +71,9 @@ class PerceptionSettings(Settings):
     capture_speed_mm_s: float = setting(80.0, 0.0, 500.0)
     rig_x_offset_mm: float = setting(300.0, -2000.0, 2000.0)  # rig origin ahead of the axle
     frame_timeout_s: float = setting(1.0, 0.01, 10.0)
+    # a frame pair awaited this long (or a camera error) counts as the cameras lost: speed
+    # capped at safety.camera_lost_speed_mm_s until a pair arrives (30 fps: 2.4 frame times)
+    camera_silence_s: float = setting(0.08, 0.02, 2.0)
     # a perceive call longer than this: worker killed, restarted
     worker_timeout_s: float = setting(1.0, 0.05, 30.0)
     # the worker process yields the CPU to the control loop (0 = as is)

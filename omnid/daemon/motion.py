@@ -15,6 +15,9 @@ Pipeline of one control cycle::
   direction. A zero target with a stopped ramp gives exactly zero duty and clears the integral.
 - Odometry (:class:`Odometry`): clock counter differences → wheel travel → exact arc
   (:func:`omnid.core.kinematics.arc_displacement`); the increments feed ``FreeSpaceMap.move``.
+- Bumps (:class:`StallDetector`): a wheel whose duty says it surely travelled more than a
+  clock without its counter changing is not turning as commanded — the chair is pressed
+  against something the map did not hold.
 """
 
 from __future__ import annotations
@@ -62,9 +65,26 @@ class MotionSettings(Settings):
     ki_per_mm: float = setting(0.003, 0.0, 0.1)  # duty per mm of integrated error
     integral_limit: float = setting(0.25, 0.0, 1.0)  # |integral term| ≤ this (duty)
     speed_window_s: float = setting(0.6, 0.05, 5.0)  # clock speed estimate window
+    # a wheel surely turned this many clocks by its duty without one is stalled: a bump (0
+    # disables, else at least 1: a stall shows only after a whole clock). "Surely": its duty's
+    # speed less a deadband, times a fraction (a weak motor), through at most a first-order lag
+    # (StallDetector). Margins measured in docs/daemon.md "Bumps"
+    bump_clocks: float = setting(1.25, 0.0, 10.0)
+    bump_lag_s: float = setting(0.3, 0.0, 2.0)  # the longest lag of a wheel behind its duty
+    bump_speed_fraction: float = setting(0.8, 0.05, 1.0)  # of its duty's speed a wheel reaches
+    bump_deadband_duty: float = setting(0.05, 0.0, 0.5)  # may not turn a wheel (static friction)
+    # after a bump, requests whose wheel velocities lie within this angle of the bumped ones
+    # (in the (left, right) plane: forward arcs after a forward bump) are refused; below 90°:
+    # a turn in place is not the same direction as a straight move
+    bump_same_direction_deg: float = setting(45.0, 1.0, 89.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        require(
+            self.bump_clocks == 0 or self.bump_clocks >= 1.0,
+            "bump_clocks",
+            "must be 0 (off) or at least 1 (a stalled wheel shows only after a whole clock)",
+        )
         require(
             self.decel_mm_s2 >= self.accel_mm_s2,
             "decel_mm_s2",
@@ -197,6 +217,103 @@ class Odometry:
         return window_speed(h[:, 0], h[:, 1], w, m), window_speed(h[:, 0], h[:, 2], w, m)
 
 
+class StallDetector:
+    """Wheels that do not turn as commanded (a bump): clock counts against duty, per wheel.
+
+    A wheel's duty asks for a speed: duty · ``full_duty_speed_mm_s`` / its feedforward gain,
+    less ``bump_deadband_duty`` (static friction), times ``bump_speed_fraction`` (a motor may be
+    weaker than calibrated). How fast the wheel gets there is not known: any first-order lag
+    between none and ``bump_lag_s`` (the motor, the PI and the ramp). Between control-unit
+    statuses the detector moves two bounding wheels by the duties given — one without lag, one
+    with the longest — capped at the pace its last two counter changes showed, and keeps their
+    signed travel since the wheel's counter last changed. The less of the two, in the direction
+    the duty drives now, is what the wheel surely turned: a wheel trails the quick one when it
+    speeds up, the slow one when it slows down, and after reversing the quick one went back
+    first. One clock is 31.4 mm, so a wheel turning at least that surely changes its counter
+    every clock; more than ``bump_clocks`` clocks of sure travel without a change is a stall.
+    Both travels restart at every counter change and when the wheel comes to rest (from rest a
+    wheel may need almost a whole clock before its next hole passes the sensor). A wheel the PI
+    drives harder because it is held back is predicted faster, so a stall shows sooner.
+
+    Driven by statuses, not control cycles: while no status arrives nothing is predicted (a
+    silent link is the status timeout's business, not a bump); the duty of an interval is the
+    one given at its start (the previous call's).
+
+    What it cannot do: see a stall before the wheel has been asked for about a clock more than
+    it did — the clock is the only wheel sensor (SPEC §1), 31.4 mm: about 200 ms at 240 mm/s and
+    1.2 s at 40 mm/s when the contact comes right after a hole passed.
+    """
+
+    def __init__(self, settings: MotionSettings) -> None:
+        self.settings = settings
+        self.asked_mm = [0.0, 0.0]  # surely travelled since the counter last changed
+        self.speed_mm_s = [0.0, 0.0]  # the slow (lagged) wheel's speed, signed
+        self.stalled = (False, False)  # as of the latest status
+        self._quick = [0.0, 0.0]  # signed travel of the unlagged wheel since the last change
+        self._slow = [0.0, 0.0]  # ... and of the lagged one
+        self._edge: list[tuple[float, float] | None] = [None, None]  # (t_s, signed mm/s)
+        self._duty = (0.0, 0.0)
+        self._last: tuple[int, int, float] | None = None
+
+    def reset(self) -> None:
+        self.asked_mm = [0.0, 0.0]
+        self.speed_mm_s = [0.0, 0.0]
+        self._quick = [0.0, 0.0]
+        self._slow = [0.0, 0.0]
+        self._edge = [None, None]
+        self.stalled = (False, False)
+
+    def duty_speed_mm_s(self, duty: float, gain: float) -> float:
+        """The least speed (mm/s, signed) a free wheel given ``duty`` turns at, in the end."""
+        s = self.settings
+        d = max(abs(duty) - s.bump_deadband_duty, 0.0)
+        return math.copysign(d * s.full_duty_speed_mm_s / gain * s.bump_speed_fraction, duty)
+
+    def on_status(
+        self, left_clocks: int, right_clocks: int, t_s: float, duties: tuple[float, float]
+    ) -> tuple[bool, bool]:
+        """A control-unit status at ``t_s``; ``duties`` are the ones just given (for the next
+        interval). Returns (and keeps in :attr:`stalled`) which wheel is stalled."""
+        s = self.settings
+        t = float(t_s)
+        clocks = (int(left_clocks), int(right_clocks))
+        last, self._last = self._last, (*clocks, t)
+        duty, self._duty = self._duty, (float(duties[0]), float(duties[1]))
+        if last is None or s.bump_clocks <= 0:
+            return self.stalled
+        dt = min(max(t - last[2], 0.0), 0.1)  # a longer gap: the link's fault, not a bump
+        tau = s.bump_lag_s
+        decay = math.exp(-dt / tau) if tau > 0 else 0.0
+        out = [False, False]
+        for k, gain in enumerate((s.left_gain, s.right_gain)):
+            u = self.duty_speed_mm_s(duty[k], gain)
+            v0 = self.speed_mm_s[k]
+            v1 = u + (v0 - u) * decay
+            self.speed_mm_s[k] = v1
+            turned = clocks[k] - last[k]
+            edge = self._edge[k]
+            if turned:
+                rate = math.copysign(math.inf, turned)
+                if edge is not None and edge[1] * turned > 0:
+                    rate = turned * s.mm_per_clock / max(t - edge[0], 1e-3)
+                self._edge[k] = (t, rate)
+            if turned or (u == 0.0 and abs(v1) < 1.0):
+                if not turned:
+                    self._edge[k] = None
+                self._quick[k] = self._slow[k] = self.asked_mm[k] = 0.0
+                continue
+            quick = u * dt
+            if edge is not None and edge[1] * u > 0:
+                quick = math.copysign(min(abs(quick), abs(edge[1]) * dt), u)
+            self._quick[k] += quick
+            self._slow[k] += u * dt + (v0 - u) * tau * (1.0 - decay)  # exact for the lag
+            sign = math.copysign(1.0, u) if u != 0.0 else math.copysign(1.0, v1)
+            self.asked_mm[k] = max(min(sign * self._quick[k], sign * self._slow[k]), 0.0)
+            out[k] = self.asked_mm[k] > s.bump_clocks * s.mm_per_clock
+        self.stalled = (out[0], out[1])
+        return self.stalled
+
+
 class MotionController:
     """Ramp + wheel PI: allowed twist and the measured wheel speeds → wheel duties."""
 
@@ -205,11 +322,15 @@ class MotionController:
         self.ramp = TwistRamp(settings)
         self.left = WheelPI(settings.left_gain, settings)
         self.right = WheelPI(settings.right_gain, settings)
+        self.targets_mm_s = (0.0, 0.0)  # the wheel targets of the last step
+        self.duties = (0.0, 0.0)  # and the duties it gave
 
     def reset(self) -> None:
         self.ramp.reset()
         self.left.reset()
         self.right.reset()
+        self.targets_mm_s = (0.0, 0.0)
+        self.duties = (0.0, 0.0)
 
     def step(
         self,
@@ -222,7 +343,9 @@ class MotionController:
         """One cycle: (left, right) duty in [-1, 1] for the target twist."""
         v, w = self.ramp.step(v_mm_s, omega_rad_s, dt_s, emergency)
         vl, vr = wheel_speeds(v, w, self.settings.track_mm)
-        return (
+        self.targets_mm_s = (float(vl), float(vr))
+        self.duties = (
             self.left.step(float(vl), measured_mm_s[0], dt_s),
             self.right.step(float(vr), measured_mm_s[1], dt_s),
         )
+        return self.duties

@@ -41,8 +41,10 @@ import numpy as np
 
 from omnid.core.types import PointCloud, StereoCapture
 from omnid.errors import OmnidError
+from omnid.logs import LogThrottle
 
 log = logging.getLogger(__name__)
+_THROTTLE = LogThrottle(log, interval_s=5.0)  # a worker crashing every cycle: one line per 5 s
 
 REQUEST_HEADER = struct.Struct("<dII")
 PerceiveFn = Callable[..., PointCloud]
@@ -173,7 +175,7 @@ class PerceptionWorker:
         proc.start()
         child.close()
         self._proc, self._conn, self._ready = proc, parent, False
-        log.info("perception worker started (pid %d)", proc.pid)
+        _THROTTLE.info("started", "perception worker started (pid %d)", proc.pid)
 
     def _kill(self, why: str) -> None:
         proc, conn = self._proc, self._conn
@@ -184,7 +186,7 @@ class PerceptionWorker:
             if proc.is_alive():
                 proc.kill()
             proc.join(1.0)
-            log.warning("perception worker (pid %s) stopped: %s", proc.pid, why)
+            _THROTTLE.warning("stopped", "perception worker (pid %s) stopped: %s", proc.pid, why)
 
     @property
     def pid(self) -> int | None:

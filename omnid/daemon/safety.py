@@ -65,7 +65,10 @@ class Reason(Enum):
     APPROACH = "approach"
     ESCAPE = "escape_creep"  # in the stop zone, but the move opens the gap: creep speed
     UNKNOWN_AHEAD = "unknown_ahead"
+    BUMP = "bump"  # a wheel did not turn as commanded: stopped, that direction refused
     PERCEPTION_STALE = "perception_stale"
+    CALIBRATION_LOST = "calibration_lost"  # the captures no longer fit the calibration
+    CAMERA_LOST = "camera_lost"  # the cameras deliver nothing: speed capped until they do
     RIDER_STOP = "rider_stop"
     INPUT_STALE = "input_stale"
     STATUS_STALE = "status_stale"
@@ -94,6 +97,10 @@ class SafetySettings(Settings):
     unknown_max_fraction: float = setting(0.3, 0.0, 1.0)
     unknown_speed_mm_s: float = setting(120.0, 10.0, 1000.0)
     perception_timeout_s: float = setting(1.5, 0.05, 5.0)
+    # and no forward motion after this much travel since the newest perception's capture
+    perception_max_travel_mm: float = setting(250.0, 10.0, 5000.0)
+    # the cameras deliver nothing (perception.camera_silence_s): at most this speed at once
+    camera_lost_speed_mm_s: float = setting(100.0, 0.0, 1000.0)
     log_interval_s: float = setting(2.0, 0.1, 600.0)  # one log line per reason at most this often
     # escape moves in the stop zone (see the module docstring); 0 speed disables them
     # |v| cap of an escape move (0: no escapes, main's rule)

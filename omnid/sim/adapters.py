@@ -81,12 +81,22 @@ class EmulatedControlUnit:
     """The project's control-unit emulator (``omnid.devices.emulators.control_unit``) on the
     virtual clock, every command and reply passing as bytes through the protocol codec.
 
-    It is the same code that serves a pty on the bench: it enforces its own watchdog, switches
-    the laser relay with its delay, and integrates the plant (the chair) lazily up to the clock.
+    It is the same code that serves a pty on the bench: it enforces its own watchdog and the
+    command freshness rules, switches the laser relay with its delay, and integrates the plant
+    (the chair) lazily up to the clock. Frames are built by the driver's own
+    :class:`~omnid.devices.control_unit.FreshnessGate` (cycle number, age, zero while the link
+    would be unhealthy after ``max_missed_replies`` missed replies), as ``omnid run`` sends them.
     """
 
-    def __init__(self, plant: Chair, watchdog_s: float = 0.25) -> None:
+    def __init__(
+        self,
+        plant: Chair,
+        watchdog_s: float = 0.25,
+        command_period_s: float = 0.02,
+        max_missed_replies: int = 2,
+    ) -> None:
         from omnid.devices import cu_codec as codec
+        from omnid.devices.control_unit import FreshnessGate
         from omnid.devices.emulators.control_unit import ControlUnitEmulator
 
         self._codec = codec
@@ -99,6 +109,9 @@ class EmulatedControlUnit:
         self._raw: tuple[int, int] | None = None
         self._clocks = (0, 0)
         self.missed_replies = 0
+        self._missed_in_a_row = 0
+        self._max_missed = max_missed_replies
+        self.gate = FreshnessGate(2.0 * command_period_s)
 
     @property
     def laser_on(self) -> bool:
@@ -122,7 +135,9 @@ class EmulatedControlUnit:
             laser_on=bool(command.laser_on),
             enable=bool(command.enable),
         )
-        reply = self.emulator.handle_bytes(codec.encode_command(cmd.to_frame(self._seq)))
+        self.gate.submit(cmd, now_s)
+        frame = self.gate.frame(self._seq, now_s, healthy=self._missed_in_a_row < self._max_missed)
+        reply = self.emulator.handle_bytes(codec.encode_command(frame))
         frames = [
             f
             for f in self._parser.feed(reply)
@@ -130,7 +145,9 @@ class EmulatedControlUnit:
         ]
         if not frames:
             self.missed_replies += 1
+            self._missed_in_a_row += 1
             return None
+        self._missed_in_a_row = 0
         rep = frames[-1]
         raw = (rep.left_clocks, rep.right_clocks)
         if self._raw is not None:
@@ -149,10 +166,13 @@ class EmulatedControlUnit:
         _ = self.emulator.clocks  # integrates the plant to the clock
 
 
-def make_control_unit(plant: Chair, kind: str, watchdog_s: float) -> Any:
-    """``emulator`` (bytes through the codec) or ``direct`` (the plant without a link)."""
+def make_control_unit(
+    plant: Chair, kind: str, watchdog_s: float, command_period_s: float = 0.02
+) -> Any:
+    """``emulator`` (bytes through the codec) or ``direct`` (the plant without a link);
+    ``command_period_s``: how often the controller sends (its freshness limit is two of them)."""
     if kind == "emulator":
-        return EmulatedControlUnit(plant, watchdog_s)
+        return EmulatedControlUnit(plant, watchdog_s, command_period_s)
     return DirectControlUnit(plant, watchdog_s)
 
 

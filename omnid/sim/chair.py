@@ -23,6 +23,13 @@ Model (thesis 3.3, 4.3.2; SPEC §1)
 * Clocks: 15 holes per wheel disk and 471 mm wheel circumference (thesis 4.3.2.3): one clock per
   31.4 mm of wheel travel, counting up forward and down backward.
 
+* Contact (with a ``world``): a box at least ``collision_height_mm`` tall stops the chair — a
+  step whose end pose would overlap it is not taken, and both wheels stall (speed 0, no travel,
+  no clocks), as drive wheels pressed against a wall do. The run goes on: the daemon has to
+  notice the bump from the clocks, and the chair can drive away from the box. Each time the
+  chair becomes blocked is logged (:attr:`Chair.bump_log`). Without a world the chair passes
+  through boxes and only :meth:`Chair.contacts` tells of the overlap.
+
 World frame: x, y on the floor (y left), θ counter-clockwise; the chair pose is the robot frame's
 origin (the wheel-axle midpoint) in the world. The footprint is a rectangle around the axle,
 mostly behind it: the drive wheels are the front wheels, free castors carry the rear (thesis
@@ -212,14 +219,25 @@ def _inside(point: NDArray[np.float64], rect: _Rect) -> bool:
 
 
 class Chair:
-    """The simulated chair; ``step`` / ``clocks`` make it a control-unit emulator plant."""
+    """The simulated chair; ``step`` / ``clocks`` make it a control-unit emulator plant.
+
+    ``wheel_phase_mm`` is each wheel's travel past its last hole at the start (the clock counters
+    then start at 0). With a ``world``, its boxes block the chair (module docstring):
+    ``blocked_by`` holds the
+    boxes the last step pressed against, ``bump_log`` every start of a contact as
+    ``(elapsed_s, box indices)``, ``elapsed_s`` the time the chair has been stepped.
+    """
 
     def __init__(
         self,
         settings: ChairSettings | None = None,
         pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        world: _WorldLike | None = None,
+        wheel_phase_mm: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         self.settings = settings or ChairSettings()
+        # where each wheel's next hole is at the start: a real disk stands anywhere
+        self.wheel_phase_mm = (float(wheel_phase_mm[0]), float(wheel_phase_mm[1]))
         self.x_mm, self.y_mm, self.theta_rad = (float(v) for v in pose)
         self.left_speed_mm_s = 0.0
         self.right_speed_mm_s = 0.0
@@ -227,6 +245,14 @@ class Chair:
         self.right_travel_mm = 0.0
         self.left_duty = 0.0
         self.right_duty = 0.0
+        self.world = world
+        self.elapsed_s = 0.0
+        self.blocked_by: tuple[int, ...] = ()
+        self.bump_log: list[tuple[float, tuple[int, ...]]] = []
+        s = self.settings
+        w = s.footprint_width_mm / 2.0
+        self._reach_mm = math.hypot(max(s.footprint_front_mm, s.footprint_rear_mm), w)
+        self._free_mm = 0.0  # travel of any footprint point that cannot reach a box (≤ 0: check)
 
     # -- the plant contract -------------------------------------------------------------------
 
@@ -246,6 +272,14 @@ class Chair:
         if not (math.isfinite(dt_s) and dt_s >= 0):
             raise ValueError(f"Chair.step: dt_s must be finite and ≥ 0, got {dt_s!r}")
         s = self.settings
+        self.elapsed_s += dt_s
+        before = (
+            self.x_mm,
+            self.y_mm,
+            self.theta_rad,
+            self.left_travel_mm,
+            self.right_travel_mm,
+        )
         self.left_duty, self.right_duty = float(left_duty), float(right_duty)
         ul = self._target_speed(left_duty, s.left_gain)
         ur = self._target_speed(right_duty, s.right_gain)
@@ -268,11 +302,104 @@ class Chair:
                 dr * (1.0 - s.right_slip),
                 s.track_mm,
             )
+        if self.world is not None:
+            self._block(before)
+
+    def _block(self, before: tuple[float, float, float, float, float]) -> None:
+        """Cut the step just taken short where it pressed the footprint into a box (wheels
+        stalled).
+
+        The exact overlap test runs only when the footprint may have reached a box: after each
+        test the distance to the nearest box bounds how far any footprint point can move
+        (translation + turn · farthest corner) before the next one is needed.
+        """
+        x0, y0, th0, _, _ = before
+        self._free_mm -= math.hypot(self.x_mm - x0, self.y_mm - y0)
+        self._free_mm -= abs(self.theta_rad - th0) * self._reach_mm
+        if self._free_mm > 0.0:
+            self.blocked_by = ()
+            return
+        assert self.world is not None
+        hit = self._pressed_boxes(self.world)
+        if not hit:
+            self.blocked_by = ()
+            self._free_mm = self._box_distance(self.world)
+            return
+        if not self.blocked_by:
+            self.bump_log.append((self.elapsed_s, hit))
+        self.blocked_by = hit
+        # The chair stops where it touches: the largest part of the step (interpolated, the step
+        # is a few mm) that does not overlap, found by bisection to a 1/4096 of the step.
+        after = (self.x_mm, self.y_mm, self.theta_rad, self.left_travel_mm, self.right_travel_mm)
+        lo, hi = 0.0, 1.0
+        for _ in range(12):
+            mid = 0.5 * (lo + hi)
+            self._set_state(before, after, mid)
+            if self._pressed_boxes(self.world):
+                hi = mid
+            else:
+                lo = mid
+        self._set_state(before, after, lo)
+        self.left_speed_mm_s = self.right_speed_mm_s = 0.0
+
+    def _set_state(
+        self,
+        a: tuple[float, float, float, float, float],
+        b: tuple[float, float, float, float, float],
+        f: float,
+    ) -> None:
+        x, y, th, tl, tr = (u + f * (v - u) for u, v in zip(a, b, strict=True))
+        self.x_mm, self.y_mm, self.theta_rad = x, y, th
+        self.left_travel_mm, self.right_travel_mm = tl, tr
+
+    def _tall(self, world: _WorldLike) -> NDArray[np.float64]:
+        """Rectangles (B', 4) of the boxes tall enough to stop the chair, remembered per world."""
+        cached = getattr(self, "_tall_cache", None)
+        if cached is not None and cached[0] is world:
+            tall: NDArray[np.float64] = cached[1]
+            return tall
+        h = np.array([float(b.height_mm) for b in world.boxes], dtype=np.float64)
+        tall = self._rects_of(world)[h >= self.settings.collision_height_mm]
+        self._tall_cache = (world, tall)
+        return tall
+
+    def _pressed_boxes(self, world: _WorldLike) -> tuple[int, ...]:
+        """Indices of the tall boxes the footprint overlaps now."""
+        return tuple(
+            c.index for c in self._box_contacts(world, self.footprint()) if c.kind == "collision"
+        )
+
+    def _box_distance(self, world: _WorldLike) -> float:
+        """Distance (mm) between the footprint and the nearest tall box (0 when touching):
+        for a convex polygon and a rectangle apart, the least of corner-to-other distances."""
+        rects = self._tall(world)
+        if len(rects) == 0:
+            return math.inf
+        corners = self.footprint()
+        dx = np.maximum(np.maximum(rects[None, :, 0] - corners[:, None, 0], 0.0),
+                        corners[:, None, 0] - rects[None, :, 1])  # fmt: skip
+        dy = np.maximum(np.maximum(rects[None, :, 2] - corners[:, None, 1], 0.0),
+                        corners[:, None, 1] - rects[None, :, 3])  # fmt: skip
+        d1 = float(np.hypot(dx, dy).min())
+        # the boxes' corners in the robot frame, against the footprint rectangle
+        s = self.settings
+        bx = np.concatenate([rects[:, 0], rects[:, 0], rects[:, 1], rects[:, 1]])
+        by = np.concatenate([rects[:, 2], rects[:, 3], rects[:, 2], rects[:, 3]])
+        c, sn = math.cos(self.theta_rad), math.sin(self.theta_rad)
+        rx = c * (bx - self.x_mm) + sn * (by - self.y_mm)
+        ry = -sn * (bx - self.x_mm) + c * (by - self.y_mm)
+        w = s.footprint_width_mm / 2.0
+        ex = np.maximum(np.maximum(-s.footprint_rear_mm - rx, rx - s.footprint_front_mm), 0.0)
+        ey = np.maximum(np.abs(ry) - w, 0.0)
+        return min(d1, float(np.hypot(ex, ey).min()))
 
     def clocks(self) -> tuple[int, int]:
         """Proximity-sensor counters (left, right): whole holes passed, signed (thesis 4.3.2.3)."""
         c = self.settings.clock_mm
-        return math.floor(self.left_travel_mm / c), math.floor(self.right_travel_mm / c)
+        lp, rp = self.wheel_phase_mm
+        return math.floor((self.left_travel_mm + lp) / c), math.floor(
+            (self.right_travel_mm + rp) / c
+        )
 
     # -- pose and geometry --------------------------------------------------------------------
 
@@ -341,8 +468,24 @@ class Chair:
         fall. Touching is overlap of positive area (grazing an edge is not a contact).
         """
         s = self.settings
+        out = self._box_contacts(world, self.footprint())
+        for i in self.blocked_by if world is self.world else ():
+            if all(c.index != i for c in out):
+                out.append(Contact("collision", i, "footprint"))
+        support = self.support_points()
+        for i, drop in enumerate(world.dropoffs):
+            if float(drop.depth_mm) < s.fall_depth_mm:
+                continue
+            for name, p in support.items():
+                if _inside(p, drop):
+                    out.append(Contact("fall", i, name))
+                    break
+        return out
+
+    def _box_contacts(self, world: _WorldLike, corners: NDArray[np.float64]) -> list[Contact]:
+        """Collisions of the footprint with ``corners`` (4, 2) with the world's tall boxes."""
+        s = self.settings
         out: list[Contact] = []
-        corners = self.footprint()
         axis = np.array([math.cos(self.theta_rad), math.sin(self.theta_rad)])
         rects = self._rects_of(world)
         lo, hi = corners.min(axis=0), corners.max(axis=0)
@@ -357,12 +500,4 @@ class Chair:
             box = world.boxes[i]
             if float(box.height_mm) >= s.collision_height_mm and _overlaps_aabb(corners, axis, box):
                 out.append(Contact("collision", i, "footprint"))
-        support = self.support_points()
-        for i, drop in enumerate(world.dropoffs):
-            if float(drop.depth_mm) < s.fall_depth_mm:
-                continue
-            for name, p in support.items():
-                if _inside(p, drop):
-                    out.append(Contact("fall", i, name))
-                    break
         return out

@@ -32,7 +32,10 @@ class SimSettings:
     control_unit: Literal["emulator", "direct"] = "emulator"
     truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
     watchdog_s: float = 0.25  # the control unit stops the motors after this silence
-    stop_on_contact: bool = True  # end the run at the first collision or fall
+    stop_on_contact: bool = True  # end the run at the first fall (and collision, with "pass")
+    # "block": a box stops the chair (wheels stall, the run goes on: omnid.sim.chair);
+    # "pass": the chair drives through boxes and a collision is only recorded
+    contact: Literal["block", "pass"] = "block"
     record_period_s: float = 0.05
     seed: int = 0
     rig: Literal["misaligned", "nominal"] = "misaligned"  # the cameras as installed

@@ -64,7 +64,7 @@ from omnid.sim.adapters import (
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
 from omnid.sim.faults import FAULT_KINDS, Fault, FaultInjector, FaultKind, InjectedFault
-from omnid.sim.laser import LaserProjector, ideal_lattice
+from omnid.sim.laser import LaserProjector
 from omnid.sim.open_loop import OpenLoopCommand, OpenLoopDriver
 from omnid.sim.results import SimResult, chair_clearance_mm, world_rects
 from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
@@ -128,7 +128,11 @@ class Simulator:
         self.controller = controller
         self.settings = (settings or SimSettings()).for_controller(controller)
         s = self.settings
-        self.chair = Chair(chair_settings, pose=course.start_pose)
+        self.chair = Chair(
+            chair_settings,
+            pose=course.start_pose,
+            world=course.world if s.contact == "block" else None,
+        )
         self.rider = rider
         self.keys = keys
         self.joystick: JoystickScript | ReactiveRider | None = joystick
@@ -144,8 +148,12 @@ class Simulator:
                 misaligned_rig(h) if s.rig == "misaligned" else StereoRig.nominal(floor_depth_mm=h)
             )
         self.rig = rig
-        self.laser = laser or ideal_lattice()
-        self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
+        # the world's laser: a physical, non-ideal projector (perception never sees it;
+        # calibration learns it from the installer's captures)
+        self.laser = laser or LaserProjector()
+        self.control_unit = make_control_unit(
+            self.chair, s.control_unit, s.watchdog_s, float(s.control_period_s or 0.02)
+        )
         self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
         if rider is not None:
             self.tilt = make_tilt_sensor(rider, s.tilt_link, s.tilt_noise_deg, s.seed)
@@ -171,16 +179,15 @@ class Simulator:
     # -- installation -------------------------------------------------------------------------
 
     def install(self) -> Any:
-        """Calibrate the rig as an installer would: one capture of an empty floor ``H`` below
-        the mirrors (laser on), ``calibrate_from_capture``; the result is what perception uses."""
-        from omnid.core.calibration import calibrate_from_capture
-        from omnid.sim.render import render_hits
-        from omnid.sim.scenes import floor_hits
+        """Calibrate the rig as an installer would: a capture of the empty floor ``H`` below the
+        mirrors and extra captures of a box and a wall ahead (laser on),
+        :func:`omnid.sim.installation.calibrate_installed`; the result is what perception uses."""
+        from omnid.sim.installation import calibrate_installed
 
         w0 = time.perf_counter()
-        floor = floor_hits(self.rig, self.laser, self.mount)
-        cap = render_hits(self.rig, floor, self.settings.seed + 7919)
-        self.calibration = calibrate_from_capture(cap, self.mount.height_mm, self.rig.baseline_mm)
+        self.calibration = calibrate_installed(
+            self.rig, self.laser, self.mount, seed=self.settings.seed
+        )
         self.install_s = time.perf_counter() - w0
         return self.calibration
 
@@ -475,15 +482,17 @@ class Simulator:
                     last_progress = now
                     self.progress(now, self)
             pose_now = self.chair.pose
-            found = self.chair.contacts(self.course.world) if pose_now != last_pose else []
-            last_pose = pose_now  # a chair that has not moved touches nothing new
+            moved_now = pose_now != last_pose or bool(self.chair.blocked_by)
+            found = self.chair.contacts(self.course.world) if moved_now else []
+            last_pose = pose_now  # a chair that has not moved (nor pushed) touches nothing new
             new = [c for c in found if all(c != old for _, old in contacts)]
             if new:
                 min_clear = 0.0
             for c in new:
                 log.warning("simulated chair %s (%s) at t=%.2f s", c.kind, c.part, now)
                 contacts.append((now, c))
-            if new and s.stop_on_contact:
+            ending = [c for c in new if c.kind == "fall" or s.contact == "pass"]
+            if ending and s.stop_on_contact:
                 traj[n_traj] = (now, *self.chair.pose)
                 n_traj += 1
                 break

@@ -163,7 +163,12 @@ def test_exception_in_cycle_fails_safe(caplog):
     free_map(m)
     chair = Chair()
     run(core, chair, 0.0, 1.5)
-    core.grid.states = None  # break the map: the safety check raises inside the cycle
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("broken map")
+
+    core.safety.check = broken  # the safety check raises inside the cycle
+    core.on_tilt(Tilt(-20.0, 0.0, 1.52))
     cmd = core.step(1.52)
     assert (cmd.left_duty, cmd.right_duty, cmd.enable) == (0.0, 0.0, False)
     assert core.fault_count == 1 and "cycle_exception" in caplog.text
@@ -252,3 +257,24 @@ def test_after_a_control_unit_fault_motion_waits_for_the_riders_release():
             core.on_status(Status(0, 0, 0, True, 0, t + 1.5))
             core.step(t + 1.5)
             assert any(turning(t + 1.5 + 0.02 * k) for k in range(1, 30))
+
+
+def test_a_capture_that_does_not_fit_the_calibration_refuses_forward(caplog):
+    """The rig knocked out of calibration (few dots on a calibrated beam): the core says so,
+    keeps the capture out of the map and refuses forward motion until a capture fits again."""
+    from dataclasses import replace
+
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 1.0, 1.5))
+    updates = len(m.clouds)
+    core.on_perception(replace(floor_cloud(), calibration_fit=0.1), 1.5)
+    cmds = run(core, chair, 1.5, 3.0)
+    assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
+    assert Reason.CALIBRATION_LOST in core.last_report.reasons
+    assert "calibration_lost" in caplog.text
+    assert len(m.clouds) == updates  # the misfit capture never reached the map
+    core.on_perception(replace(floor_cloud(), calibration_fit=0.95), 3.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 3.0, 4.5))

@@ -138,3 +138,35 @@ def test_fault_stops_the_wheels_in_the_promised_time_then_recovers(kind):
     assert took <= _promised_s(kind, core), f"{kind}: {took:.2f} s"
     assert result.max_speed_between(t0 + took + 0.1, t1) < STANDSTILL_MM_S  # stays stopped
     assert result.max_speed_between(t1, 16.0) > 50.0  # recovered: driving again
+
+
+def test_a_box_the_map_never_held_is_bumped_once_the_chair_stops_and_backs_away():
+    """Perception that never reports the box (a map that keeps saying free floor): the chair
+    drives into it, the simulator blocks it (wheels stall, the run goes on), the daemon notices
+    from the clocks, stops at once, refuses forward while the stick stays forward and backs away
+    when the rider pulls it back."""
+    from omnid.core.occupancy import CellState
+    from omnid.sim.rider import JoystickScript
+
+    core = make_core(joystick=True)
+    core.map._anchor.states[:] = CellState.FREE  # type: ignore[attr-defined]
+    core.on_perception = lambda cloud, t: setattr(core, "perception_time_s", t)  # type: ignore[method-assign]
+    box = Box(1500.0, 1700.0, -300.0, 300.0, 600.0)
+    stick = JoystickScript(((0.5, 0.6, 0.0), (14.0, 0.0, 0.0), (15.0, -0.8, 0.0), (17.0, 0.0, 0.0)))
+    sim = Simulator(room((box,)), core, TRUTH, joystick=stick)
+    result = sim.run(18.0)
+    assert len(sim.chair.bump_log) == 1  # one contact: pushing on was refused
+    t_contact = sim.chair.bump_log[0][0]
+    assert [c.kind for _, c in result.contacts] == ["collision"]
+    assert result.duration_s == pytest.approx(18.0)  # the run went on
+    st = result.steps
+    bump = (st[:, 1].astype(np.int64) & result.reason_mask("bump")) != 0
+    t_bump = float(st[np.argmax(bump), 0])
+    speed = float(np.mean(np.abs(st[(st[:, 0] > t_contact - 0.5) & (st[:, 0] < t_contact), 5])))
+    m = core.config.motion  # type: ignore[attr-defined]
+    sure = core.stall.duty_speed_mm_s(speed / m.full_duty_speed_mm_s, 1.0)  # type: ignore[attr-defined]
+    assert 0.0 < t_bump - t_contact <= m.bump_clocks * m.mm_per_clock / sure + 0.1
+    cmds = result.commands
+    after = cmds[(cmds[:, 0] >= t_bump) & (cmds[:, 0] < 14.0)]
+    assert np.all(after[:, 1:3] == 0.0)  # duty 0 from the bump's own cycle on
+    assert result.trajectory[-1, 1] < result.trajectory[result.trajectory[:, 0] < 14.0][-1, 1] - 100

@@ -194,3 +194,54 @@ def test_reversing_castors_over_a_drop_off_is_a_fall():
     assert chair.contacts(_World(dropoffs=(drop,))) == []
     run(chair, -0.2, -0.2, 0.5)
     assert [c.part for c in chair.contacts(_World(dropoffs=(drop,)))] == ["left castor"]
+
+
+def test_a_box_blocks_the_chair_its_wheels_stall_and_it_can_drive_away():
+    wall = _Box(1000.0, 1100.0, -2000.0, 2000.0, 800.0)
+    world = _World(boxes=(wall,))
+    chair = Chair(IDEAL, world=world)
+    run(chair, 0.5, 0.5, 6.0, dt_s=0.01)  # 117.75 mm/s: the bumper (x + 350) reaches 1000 at 5.5 s
+    front = chair.x_mm + IDEAL.footprint_front_mm
+    assert 1000.0 - 2.0 < front <= 1000.0  # pressed against it, never into it
+    assert chair.blocked_by == (0,)
+    assert chair.left_speed_mm_s == 0.0 and chair.right_speed_mm_s == 0.0  # stalled
+    assert [c.kind for c in chair.contacts(world)] == ["collision"]
+    assert len(chair.bump_log) == 1 and 5.4 < chair.bump_log[0][0] < 5.6
+    clocks = chair.clocks()
+    run(chair, 0.5, 0.5, 1.0, dt_s=0.01)
+    assert chair.clocks() == clocks  # a stalled wheel turns no hole past its sensor
+    run(chair, -0.3, -0.3, 1.0, dt_s=0.01)  # backing away is free
+    assert chair.blocked_by == () and chair.x_mm < front - IDEAL.footprint_front_mm - 50.0
+    assert chair.clocks()[0] < clocks[0]
+    run(chair, 0.5, 0.5, 2.0, dt_s=0.01)
+    assert len(chair.bump_log) == 2  # a second contact is a second bump
+
+
+def test_low_boxes_do_not_block_and_a_chair_without_a_world_passes_through():
+    low = _World(boxes=(_Box(500.0, 600.0, -2000.0, 2000.0, 10.0),))
+    chair = Chair(IDEAL, world=low)
+    run(chair, 0.5, 0.5, 6.0)  # 706 mm
+    assert chair.x_mm > 600.0 and chair.bump_log == []
+    tall = _World(boxes=(_Box(500.0, 600.0, -2000.0, 2000.0, 500.0),))
+    ghost = Chair(IDEAL)
+    run(ghost, 0.5, 0.5, 12.0)  # 1413 mm: the rear (750 mm behind the axle) is past the box
+    assert ghost.x_mm > 1350.0 and ghost.contacts(tall) == []  # far past it again
+
+
+def test_a_turn_that_swings_the_tail_into_a_box_is_blocked():
+    box = _Box(-900.0, -700.0, 420.0, 600.0, 500.0)  # beside the left rear corner
+    world = _World(boxes=(box,))
+    chair = Chair(IDEAL, world=world)
+    run(chair, 0.3, -0.3, 3.0, dt_s=0.01)  # turning right in place swings the tail left
+    assert chair.blocked_by == (0,)
+    assert all(c.kind == "collision" for c in chair.contacts(world))
+    assert not _overlap(chair, box)
+
+
+def _overlap(chair: Chair, box: _Box) -> bool:
+    from omnid.sim.chair import _overlaps_aabb
+
+    axis = [math.cos(chair.theta_rad), math.sin(chair.theta_rad)]
+    import numpy as np
+
+    return _overlaps_aabb(chair.footprint(), np.array(axis), box)

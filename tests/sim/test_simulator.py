@@ -20,17 +20,29 @@ def _course(world: World) -> Course:
     return Course("test", world, (0.0, 0.0, 0.0), (-1000.0, 5000.0), (-2000.0, 2000.0))
 
 
-def test_open_loop_chair_hits_the_wall_and_the_run_stops_there():
+def test_open_loop_chair_hits_the_wall_and_is_blocked_there_the_run_goes_on():
     sim = Simulator(empty_room(3500.0), OpenLoopDriver([(0.0, 1.0, 1.0)]), chair_settings=STRAIGHT)
     result = sim.run(30.0)
     assert [c.kind for _, c in result.contacts] == ["collision"]
     t_hit = result.contacts[0][0]
     # Front wall at x = 2500, footprint front 350 mm ahead of the axle: contact at x ≈ 2150 mm,
-    # reached at full speed 235.5 mm/s after the motor lag (0.15 s).
+    # reached at full speed 235.5 mm/s after the motor lag (0.15 s) and one 50 ms command period
+    # (the first frame on the wire is always zero: protocol "Freshness").
     assert result.trajectory[-1, 1] == pytest.approx(2150.0, abs=5.0)
-    assert t_hit == pytest.approx(2150.0 / STRAIGHT.max_speed_mm_s + 0.15, abs=0.05)
-    assert result.duration_s == pytest.approx(t_hit)
+    assert t_hit == pytest.approx(2150.0 / STRAIGHT.max_speed_mm_s + 0.15 + 0.05, abs=0.05)
+    assert result.duration_s == pytest.approx(30.0)  # a contact is a blocked chair, not the end
+    assert result.max_speed_between(t_hit + 0.05, 30.0) == 0.0  # the wheels stall against it
     assert result.min_clearance_mm == 0.0
+
+
+def test_with_contact_pass_the_chair_drives_through_and_the_run_stops_at_the_contact():
+    settings = SimSettings(contact="pass")
+    sim = Simulator(
+        empty_room(3500.0), OpenLoopDriver([(0.0, 1.0, 1.0)]), settings, chair_settings=STRAIGHT
+    )
+    result = sim.run(30.0)
+    assert [c.kind for _, c in result.contacts] == ["collision"]
+    assert result.duration_s == pytest.approx(result.contacts[0][0])
 
 
 def test_open_loop_chair_falls_down_the_stairs():

@@ -4,8 +4,11 @@ It applies the commanded duties to a *plant* — anything with ``step(left_duty,
 and ``clocks() -> (left, right)`` (total clocks, + forward); the default :class:`MotorPlant` is a
 first-order motor model (30 rpm at full duty, 15 clocks per turn, wheel circumference 471 mm,
 thesis 4.3.2.2–4.3.2.3) and the simulator passes the chair's dynamics instead. It switches the
-laser relay with a small delay, enforces the unit's own motor-stop watchdog, and injects faults:
-``drop_replies``, ``corrupt_replies``, ``stall``, ``die`` (close the pty = unplug), ``recover``.
+laser relay with a small delay, enforces the unit's own motor-stop watchdog and the command
+freshness rules of protocol version 2 (a stale, replayed or endlessly repeated command brakes;
+after power-up, a watchdog trip or such a brake, ENABLE is obeyed only after a zero frame), and
+injects faults: ``drop_replies``, ``corrupt_replies``, ``stall``, ``die`` (close the pty =
+unplug), ``recover``.
 
 Time is integrated lazily from an injectable monotonic ``clock`` at every received byte chunk
 and every query, so no ticking thread is needed and the simulator can run it on its own clock.
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -30,8 +34,9 @@ from omnid.devices import cu_codec as codec
 from omnid.devices.pty import PtyPort
 from omnid.devices.transport import LoopTransport
 from omnid.errors import DeviceError
+from omnid.logs import LogThrottle
 
-__all__ = ["ControlUnitEmulator", "MotorPlant", "Plant", "add_arguments", "run"]
+__all__ = ["ControlUnitEmulator", "MotorPlant", "Plant", "WireSpy", "add_arguments", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -114,6 +119,7 @@ class ControlUnitEmulator:
         self.default_watchdog_s = default_watchdog_s
         self.clock_offset = clock_offset
         self.name = name
+        self._throttle = LogThrottle(log, interval_s=5.0, clock=clock)
         self._lock = threading.RLock()
         self._parser = codec.FrameParser(accept=(codec.TYPE_COMMAND,))
         self._t = clock()
@@ -125,6 +131,11 @@ class ControlUnitEmulator:
         self._last_cmd_t: float | None = None
         self._watchdog_s = default_watchdog_s
         self._latched = codec.FAULT_RESET
+        self._armed = False  # ENABLE is obeyed only after a zero frame (power-up, trips)
+        self._cycle: int | None = None  # the newest command cycle seen, and since when
+        self._cycle_since = self._t
+        self.stale_refusals = 0
+        self.last_refusal = ""
         self._injected_faults = 0
         self._rx_errors_seen = 0
         self.watchdog_trips = 0
@@ -172,9 +183,10 @@ class ControlUnitEmulator:
             self._laser_request = False
             self._laser_change_t = at
         self._latched |= codec.FAULT_WATCHDOG
+        self._armed = False
         self.watchdog_trips += 1
         self._last_cmd_t = None
-        log.info("%s: watchdog tripped, motors stopped", self.name)
+        self._throttle.info("watchdog", "%s: watchdog tripped, motors stopped", self.name)
 
     # -- protocol ------------------------------------------------------------------------
     def handle_bytes(self, data: bytes) -> bytes:
@@ -196,11 +208,43 @@ class ControlUnitEmulator:
                 out += self._obey(frame, now)
             return bytes(out)
 
+    def _refusal(self, cmd: codec.CommandFrame, now: float) -> str:
+        """Why an ENABLE command must not drive (protocol "Freshness"), or ""."""
+        max_age_s = (cmd.max_age_ms or codec.MAX_AGE_DEFAULT_MS) / 1000
+        if not self._armed:
+            return "ENABLE before a zero frame (after power-up, a watchdog trip or a refusal)"
+        if cmd.age_ms / 1000 > max_age_s:
+            return f"command {cmd.age_ms} ms old > {max_age_s * 1000:.0f} ms"
+        if self._cycle is not None:
+            ahead = codec.cycle_ahead(self._cycle, cmd.cycle)
+            if ahead < 0:
+                return f"cycle {cmd.cycle} older than {self._cycle} (replayed)"
+            if ahead == 0 and now - self._cycle_since > max_age_s:
+                return (
+                    f"cycle {cmd.cycle} repeated for {(now - self._cycle_since) * 1000:.0f} ms "
+                    f"> {max_age_s * 1000:.0f} ms"
+                )
+        return ""
+
     def _obey(self, cmd: codec.CommandFrame, now: float) -> bytes:
         self.commands_received += 1
         self._last_cmd_t = now
         self._watchdog_s = cmd.watchdog_ms / 1000 if cmd.watchdog_ms else self.default_watchdog_s
-        self._enabled = bool(cmd.flags & codec.FLAG_ENABLE)
+        drive = cmd.enabled
+        if drive:
+            why = self._refusal(cmd, now)
+            if why:
+                drive = False
+                self._armed = False
+                self._latched |= codec.FAULT_STALE_COMMAND
+                self.stale_refusals += 1
+                self.last_refusal = why
+                self._throttle.warning("stale", "%s: command refused: %s", self.name, why)
+        else:
+            self._armed = True
+        if self._cycle is None or codec.cycle_ahead(self._cycle, cmd.cycle) > 0:
+            self._cycle, self._cycle_since = cmd.cycle, now
+        self._enabled = drive
         self._duty = (cmd.left_duty, cmd.right_duty) if self._enabled else (0.0, 0.0)
         want_laser = bool(cmd.flags & codec.FLAG_LASER_ON)
         if want_laser != self._laser_request:
@@ -354,6 +398,42 @@ class ControlUnitEmulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class WireSpy:
+    """Records every command frame an emulated unit receives, with the monotonic time its bytes
+    arrived — the bench's spy on the control-unit wire (``tools/fault_figures.py``, tests).
+
+    It wraps ``emulator.handle_bytes`` and decodes the stream with its own parser, so it sees the
+    frames even while the unit is stalled or dead. ``frames`` is bounded (``max_frames``).
+    """
+
+    def __init__(self, emulator: ControlUnitEmulator, max_frames: int = 200_000) -> None:
+        self.frames: collections.deque[tuple[float, codec.CommandFrame]] = collections.deque(
+            maxlen=max_frames
+        )
+        self._parser = codec.FrameParser(accept=(codec.TYPE_COMMAND,))
+        inner = emulator.handle_bytes
+
+        def spy(data: bytes) -> bytes:
+            t = time.monotonic()
+            for f in self._parser.feed(data):
+                if isinstance(f, codec.CommandFrame):
+                    self.frames.append((t, f))
+            return inner(data)
+
+        emulator.handle_bytes = spy  # type: ignore[method-assign]
+
+    def after(self, t_s: float) -> list[tuple[float, codec.CommandFrame]]:
+        """The frames received at or after monotonic ``t_s``, oldest first."""
+        return [(t, f) for t, f in list(self.frames) if t >= t_s]
+
+    def first_zero_after(self, t_s: float) -> float | None:
+        """Time of the first zero-duty frame at or after ``t_s`` (None: none yet)."""
+        for t, f in self.after(t_s):
+            if f.left_duty_pm == 0 and f.right_duty_pm == 0:
+                return t
+        return None
 
 
 # -- ``omnid emulate control-unit`` -----------------------------------------------------------
