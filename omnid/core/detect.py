@@ -101,9 +101,9 @@ class DetectionParams(Settings):
         5, 2, 20
     )  # local background: min filter of this radius, px
     best_min_contrast: float = setting(
-        0.2, 0.0, 0.99
-    )  # compact: the peak's own curvature predicts (peak − ring) / peak ≥ this on a ring of
-    # 1.6 smoothed spot sigmas (3 px for 1.3 px spots); 0.2 passes spots stretched to 2.2x
+        0.12, 0.0, 0.99
+    )  # compact: the peak's own curvature predicts (peak − ring 3 px out) / peak ≥ this
+    # (0.12: spots up to σ ≈ 5.8 px along their flatter axis pass, smooth bumps do not)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -338,6 +338,26 @@ def _flicker_gain(d: NDArray, mask_gray: NDArray, noise: float) -> float:
     return gain if abs(gain) * float(m[lit].mean()) >= 2.0 * noise else 0.0
 
 
+def _clutter(small: NDArray[np.float32], bg_half: NDArray[np.float32], mask_gray: NDArray) -> float:
+    """The spread of the subtracted image about its local background at the dots' scale, gray
+    levels: sensor noise and whatever of the scene the two frames do not share.
+
+    Measured at half resolution (``small`` = pyrDown of the subtracted image, whose 5x5 kernel
+    divides white noise by 128/35 = 3.66, about what the σ = 1 px smoothing of the
+    candidates does: 3.5), on every 4th row, where the mask frame sees the scene (not the dark
+    housing, which holds no noise), from the lower half of the values only — the dots stand
+    above the background, never below it: (median − 25th percentile) / 0.6745. 0 with too
+    few samples.
+    """
+    lit = mask_gray[::8, ::2][: (small.shape[0] + 3) // 4, : small.shape[1]] >= _HOUSING_GRAY
+    res = (small[::4] - bg_half[::4])[: lit.shape[0], : lit.shape[1]][lit]
+    if res.size < 64:
+        return 0.0
+    k25, k50 = res.size // 4, res.size // 2
+    q = np.partition(res, (k25, k50))
+    return float(q[k50] - q[k25]) / 0.6745
+
+
 def _noise_sigma(d: NDArray) -> float:
     """Robust noise sigma of an image, gray levels: MAD of horizontal neighbour differences
     (on a subsample of rows), divided by √2 for the difference of two samples.
@@ -416,13 +436,33 @@ def _box_of(
 
 #: Spot sizes the matched filter follows (sigma, px): the estimate is clipped to this range.
 _SPOT_SIGMA_RANGE_PX = (0.8, 3.5)
-#: A filtered maximum pulled further than this by a neighbour (first-order estimate, px) is
-#: fitted jointly with it; smaller pulls are taken back to first order.
-_FIRST_ORDER_PX = 0.1
+#: In an image of spots larger than this (sigma, px) every dot is fitted (spotfit): their
+#: neighbours overlap them.
+_FIT_ALL_FROM_PX = 1.5
+#: ... and a dot with at least this many clipped pixels starts from their middle.
+_CLIPPED_FIT_PX = 8
+#: ... looked for within this of its peak pixel, px.
+_CLIPPED_HALF_PX = 6
+#: A neighbour whose light moves a filtered maximum by less than this is left alone, px.
+_COUPLING_PX = 0.01
+#: Fixed-point iterations of the neighbours' pull (:func:`_neighbour_pull`).
+_PULL_ITERATIONS = 4
+#: A pull larger than this (px) is left to the fit.
+_PULL_MAX_PX = 0.75
+#: Two maxima are two dots if the image dips between them by this share of the dimmer.
+_SADDLE_DEPTH = 0.05
+#: ... looked for up to this many filtered sigmas apart.
+_SADDLE_REACH = 3.0
 #: With fewer unclipped dots than this, the spot size comes from a censored fit.
 _MIN_UNCLIPPED = 16
 #: How many of the brightest dots that fit uses.
 _SIZE_FIT_SAMPLE = 48
+#: The compactness test's ring: the predicted contrast 3 px from a peak (thesis-sized dots).
+_RING_PX = 3.0
+#: ... and a flat top's: the median of a ring this many image spot sizes out must be this far
+#: below it.
+_FAR_RING = 2.5
+_FAR_CONTRAST = 0.9
 #: Outside the mirror's disk the camera sees its dark housing (SPEC §6): a mask-frame pixel
 #: darker than this (gray) is not the scene.
 _HOUSING_GRAY = 12.0
@@ -472,11 +512,12 @@ def _spot_sigma(mean_var: NDArray[np.float64], peak: NDArray) -> float:
     """The image's spot size (Gaussian sigma, px) from the curvature of the σ = 1 px smoothed
     image at its peaks (``mean_var`` of :func:`_log_quadratic`): a spot of sigma σ there has
     the variance σ² + 1 + 1/12 (the smoothing and the pixel's own box). The median over the
-    brighter half of the peaks (the brightest alone would favour the larger spots, whose
-    smoothed peaks are higher); a clipped or flat top reads wider, which is what its matched
-    filter should be."""
+    bright peaks — at least half as bright as the brightest few per cent, so that grains and
+    a changing scene's bumps, however many, do not count — ; a clipped or flat top reads wider,
+    which is what its matched filter should be."""
     if len(peak) > 1:
-        mean_var = mean_var[peak >= np.partition(peak, len(peak) // 2)[len(peak) // 2]]
+        top = np.partition(peak, int(0.95 * (len(peak) - 1)))[int(0.95 * (len(peak) - 1))]
+        mean_var = mean_var[peak >= 0.5 * top]
     good = mean_var[np.isfinite(mean_var)]
     if len(good) == 0:
         return 1.3
@@ -513,9 +554,10 @@ def _clipped_sigma(
 def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np.float64]:
     """Sub-pixel dot centres.
 
-    1. gray: the laser's channel combination (``bgr_weights``), signed base − mask; its noise
-       sigma (:func:`_noise_sigma`) sets the detection threshold;
+    1. gray: the laser's channel combination (``bgr_weights``), signed base − mask;
     2. local background (flicker) estimated at half resolution, see :func:`_background_half`;
+       the noise sigma (:func:`_noise_sigma`) and the clutter about that background
+       (:func:`_clutter`: a changed scene) set the detection threshold;
     3. only the box around the places standing 0.6 · threshold above that background at half
        resolution is processed further (the laser dots usually cover a part of the mirror disk
        only: the pattern is thrown to the front). A dot the whole frame would show has its
@@ -524,19 +566,26 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
        box of all the others, can be lost to the box;
     4. the illumination change between the frames (:func:`_flicker_gain`) is taken out as
        gain · mask when it stands above the noise (it copies the scene, sharp edges and all);
-    5. candidates: local maxima (3x3) of a σ = 1 px smoothed copy above ``best_min_peak_gray``
-       and ``best_snr`` noise sigmas; compact (``best_min_contrast``, judged from each peak's
-       own curvature, see below) and at least ``best_relative_peak`` of the brightest value
-       within ``best_relative_radius_px`` (more for large spots; rejects speckle grains in a
-       dot's halo and dim ghosts). The spot size σ is measured from the same curvatures
-       (:func:`_spot_sigma`; from a censored fit where the sensor clipped every top);
+    5. candidates: local maxima (3x3) of a σ = 1 px smoothed copy above that threshold;
+       compact (``best_min_contrast``: the contrast 3 px out that each peak's own curvature
+       predicts, or for a flat top a ring a few spot sizes out, :func:`_ring_contrast`), at
+       least ``best_relative_peak`` of the brightest value within
+       ``best_relative_radius_px`` (more for large spots; rejects speckle grains in a dot's
+       halo and dim ghosts), and for wide or clipped tops not a mere bump on a brighter
+       maximum's top (:func:`_one_spot`). The spot size σ is measured from the same
+       curvatures (:func:`_spot_sigma`; from a censored fit where the sensor clipped every
+       top);
     6. centre: the maximum of the matched-filtered image (:func:`_log_quadratic`; the 1 px
        smoothing for spots up to 1.5 px, a Gaussian of σ beyond) — for a Gaussian spot the
        least-squares (maximum-likelihood) centre, and for any spot that is point-symmetric
        about its centre (flat, clipped or stretched tops, halos) the centre itself. A
-       neighbour's light pulls a filtered maximum toward it (:func:`_neighbour_pull`): small
-       pulls are taken back to first order, large ones (big spots, close beams) by fitting the
-       dots concerned jointly (:func:`~omnid.core.spotfit.fit_spots`).
+       neighbour's light pulls a filtered maximum toward it: for small spots the pull is
+       solved for (:func:`_neighbour_pull`), and dots it does not resolve are fitted
+       (:func:`~omnid.core.spotfit.fit_spots`: a Gaussian and a plane per dot, every
+       neighbour's light taken out, clipped pixels as lower bounds); in an image of spots
+       larger than 1.5 px every dot is fitted, those with a clipped top from the middle of
+       their clipped pixels. Dots the mirror's rim cuts are fitted on the pixels that see
+       them (:func:`_refine`).
 
     Cost: the full frame is touched only by the subtraction (int16 for 8-bit input), the
     noise estimate (a few rows) and one pyramid step; every other filter runs at half
@@ -545,8 +594,6 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
     full = _laser_difference(mask, base, p.bgr_weights)
     h_img, w_img = full.shape
     noise = _noise_sigma(full)
-    # The σ = 1 px smoothing divides white noise by about 2·√π·σ = 3.5.
-    threshold = max(p.best_min_peak_gray, p.best_snr * noise / 3.5)
     small = np.asarray(cv2.pyrDown(full), dtype=np.float32)
     mask_gray = _laser_gray(mask, p.bgr_weights)
     gain = _flicker_gain(full, mask_gray, noise)
@@ -562,6 +609,10 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
         else:
             small -= np.float32(gain) * np.asarray(cv2.pyrDown(mask_gray), dtype=np.float32)
     bg_half = _background_half(small, p.best_background_radius_px, noise)
+    # The σ = 1 px smoothing divides white noise by about 2·√π·σ = 3.5; the scene the two
+    # frames do not share (motion, a changed scene, frames of different cameras) adds clutter.
+    spread = max(noise / 3.5, _clutter(small, bg_half, mask_gray))
+    threshold = max(p.best_min_peak_gray, p.best_snr * spread)
     if min(h_img, w_img) < _MIN_PYRAMID_PX:
         r0, r1, c0, c1 = 0, h_img, 0, w_img
     else:
@@ -583,9 +634,13 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
     rows, cols = _local_maxima(sm, threshold, 3, (r0, r1, c0, c1), (h_img, w_img))
     centre = sm[rows, cols]
     r, c, mean_var, max_var, ok = _log_quadratic(sm, rows, cols)
-    # A top within 1 px of a clipped pixel of the base frame is flattened by the sensor.
-    clipped = _clipped_near(base, p.bgr_weights, rows + r0, cols + c0)
-    saturated = _saturated(base, p.bgr_weights, (r0, r1, c0, c1)) if clipped.any() else None
+    # A top within 1 px of a clipped pixel of the base frame is flattened by the sensor, by
+    # the laser if the scene itself (the mask frame) was not clipped there.
+    saturated = _saturated(base, p.bgr_weights, (r0, r1, c0, c1))
+    clipped = np.zeros(len(rows), dtype=bool)
+    if saturated is not None:
+        clipped = _clipped_near(base, p.bgr_weights, rows + r0, cols + c0)
+        clipped &= ~_clipped_near(mask, p.bgr_weights, rows + r0, cols + c0)
     # The blur is measured where the sensor did not clip; where it clipped (nearly) every dot,
     # by the censored fit of the brightest of them.
     if np.count_nonzero(~clipped) >= _MIN_UNCLIPPED:
@@ -596,14 +651,22 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
         )
     spread2 = sigma * sigma + 1.0 + 1.0 / 12.0  # a spot's variance after the σ = 1 smoothing
     if p.best_min_contrast > 0:
-        # A dot is compact for its size: its smoothed peak falls off in every direction. The
-        # contrast against a ring 1.6 smoothed spot sigmas out is predicted from the peak's own
-        # flatter curvature (a Gaussian of variance v falls to exp(−R²/2v) at R), so that
-        # neighbours overlapping a large spot on that ring do not fail it; a flickering edge
-        # (the mirror's rim) or a plateau is flat along it.
-        ring2 = 1.6 * 1.6 * spread2
-        ok &= max_var <= ring2 / (-2.0 * math.log(1.0 - p.best_min_contrast))
-    rows, cols, centre, r, c = rows[ok], cols[ok], centre[ok], r[ok], c[ok]
+        # A dot is compact: its smoothed peak falls off in every direction. The contrast
+        # against a ring 3 px out is predicted from the peak's own flatter curvature (a
+        # Gaussian of variance v falls to exp(−R²/2v) at R), so that neighbours overlapping a
+        # large spot on that ring do not fail it; an edge (the mirror's rim under flicker), a
+        # plateau or a smooth bump of a changing scene is flat along it. A flat top (a
+        # multimode beam) is flat too, but it falls to the background within a few of the
+        # image's spot sizes: the median of a ring there (:func:`_ring_contrast`) tells. A top
+        # the laser clipped has no curvature to judge by; it is a dot's (it saturated).
+        compact = max_var <= _RING_PX**2 / (-2.0 * math.log(1.0 - p.best_min_contrast))
+        compact |= clipped & np.isfinite(mean_var)
+        flat = np.flatnonzero(ok & ~compact)
+        if len(flat):
+            far = _ring_contrast(sm, rows[flat], cols[flat], centre[flat], math.sqrt(spread2))
+            compact[flat[far >= _FAR_CONTRAST]] = True
+        ok &= compact
+    rows, cols, centre, r, c, clipped = rows[ok], cols[ok], centre[ok], r[ok], c[ok], clipped[ok]
     if p.best_relative_peak > 0 and len(rows):
         rad = max(p.best_relative_radius_px, round(1.6 * math.sqrt(spread2)))
         disk = _disk(rad)
@@ -614,7 +677,29 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
             off = 0
         near = np.lib.stride_tricks.sliding_window_view(src, disk.shape)[rows - off, cols - off]
         ok = centre >= p.best_relative_peak * near[:, disk].max(axis=1)
-        rows, cols, centre, r, c = rows[ok], cols[ok], centre[ok], r[ok], c[ok]
+        rows, cols, centre, r, c, clipped = (
+            rows[ok],
+            cols[ok],
+            centre[ok],
+            r[ok],
+            c[ok],
+            clipped[ok],
+        )
+    # Wide or clipped tops can hold several maxima of the 1 px smoothing: one spot. (The
+    # maxima on a clipped top are all next to its clipped pixels.)
+    some = np.arange(len(rows)) if sigma > _MATCHED_FROM_PX else np.flatnonzero(clipped)
+    if len(some) > 1:
+        reach = math.ceil(_SADDLE_REACH * math.sqrt(spread2))
+        ok = np.ones(len(rows), dtype=bool)
+        ok[some] = _one_spot(sm, r[some], c[some], centre[some], reach)
+        rows, cols, centre, r, c, clipped = (
+            rows[ok],
+            cols[ok],
+            centre[ok],
+            r[ok],
+            c[ok],
+            clipped[ok],
+        )
     if len(rows) == 0:
         return _empty()
     # Dots the mirror's rim cuts (the housing outside the mirror is dark in the mask frame) are
@@ -630,24 +715,119 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
         rm, cm, _, _, ok = _log_quadratic(sm, rows, cols)
         r, c = np.where(ok, rm, r), np.where(ok, cm, c)  # else keep the 1 px filter's
     filtered_var = sigma * sigma + smooth_px * smooth_px + 1.0 / 12.0
-    pull_r, pull_c, strong = _neighbour_pull(r, c, sm[rows, cols], filtered_var, (h, w))
-    # A neighbour's light pulls a filtered maximum toward it: taken back to first order, and
-    # where that is not enough, the dots are fitted jointly.
-    weak = ~strong
-    r[weak] -= pull_r[weak]
-    c[weak] -= pull_c[weak]
-    if strong.any():
-        k = np.flatnonzero(strong)
+    # A neighbour's light pulls a filtered maximum toward it: taken back to first order where
+    # the pull is small; where it is not, the dots are fitted (with their neighbours' light
+    # taken out, see spotfit), and so are all the dots of an image of large spots (whose
+    # neighbours always overlap) and every dot whose top the laser clipped (its maximum is
+    # wherever the scene under it is darkest; it starts from the middle of its clipped pixels).
+    if sigma > _FIT_ALL_FROM_PX:
+        fit = np.ones(len(r), dtype=bool)
+    else:
+        pull_r, pull_c, fit = _neighbour_pull(r, c, sm[rows, cols], filtered_var, (h, w))
+        r[~fit] -= pull_r[~fit]
+        c[~fit] -= pull_c[~fit]
+    if saturated is not None and clipped.any() and sigma > _FIT_ALL_FROM_PX:
+        k = np.flatnonzero(clipped)
+        rk, ck, area = _clipped_middle(saturated, rows[k], cols[k], _CLIPPED_HALF_PX)
+        wide = area >= _CLIPPED_FIT_PX
+        r[k[wide]], c[k[wide]] = rk[wide], ck[wide]
+    if fit.any():
+        k = np.flatnonzero(fit)
         peak = centre[k] * spread2 / (sigma * sigma)  # the spot's own peak from the smoothed
+        # Fitted on the subtracted image: near large, dense spots the local background
+        # (a min filter) holds their light; each fit has its own plane for what is left.
         fr, fc, _, _ = spotfit.fit_spots(
-            d, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k])
+            sub, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k])
         )
-        moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5  # a fit that wandered off keeps the filter's
+        moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5  # a fit that wandered off keeps its start
         r[k[moved]], c[k[moved]] = fr[moved], fc[moved]
     if cut.any():
         k = np.flatnonzero(cut)
         r[k], c[k] = _refine(d, rows[k], cols[k])
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
+
+
+def _ring_contrast(
+    sm: NDArray,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    top: NDArray,
+    spot_px: float,
+) -> NDArray[np.float64]:
+    """1 − (the median of 8 points on a ring :data:`_FAR_RING` image spot sizes ``spot_px``
+    out, 3 to 10 px) / the peak: how far each peak falls within a few spot sizes (up to 3 of
+    the 8 points may fall on neighbours)."""
+    radius = min(max(_FAR_RING * spot_px, 3.0), 10.0)
+    pad = math.ceil(radius) + 1
+    big = cv2.copyMakeBorder(sm, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    ang = np.arange(8) * (math.pi / 4.0)
+    ring = np.stack(
+        [
+            _bilinear(big, rows + pad + radius * math.sin(a), cols + pad + radius * math.cos(a))
+            for a in ang
+        ],
+        axis=1,
+    )
+    return np.asarray(1.0 - np.median(ring, axis=1) / np.maximum(top, 1e-6), dtype=np.float64)
+
+
+def _clipped_middle(
+    saturated: NDArray[np.bool_],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    half_px: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+    """The centroid (row, col) of the clipped pixels within ``half_px`` of each clipped dot's
+    peak pixel (a clipped top is point-symmetric about the dot's centre, as its clipped pixels
+    are), and how many there are. A dot whose clipped pixels reach its window's edge (a top
+    wider than the window, or a neighbour's) gets count 0."""
+    k = 2 * half_px + 1
+    pad = np.pad(saturated, half_px)
+    win = np.lib.stride_tricks.sliding_window_view(pad, (k, k))[rows, cols]  # (n, k, k)
+    count = win.sum(axis=(1, 2))
+    off = np.arange(-half_px, half_px + 1, dtype=np.float64)
+    safe = np.maximum(count, 1)
+    r = rows + (win.sum(axis=2) @ off) / safe
+    c = cols + (win.sum(axis=1) @ off) / safe
+    edge = win[:, 0, :].any(axis=1) | win[:, -1, :].any(axis=1)
+    edge |= win[:, :, 0].any(axis=1) | win[:, :, -1].any(axis=1)
+    return r, c, np.where(edge, 0, count)
+
+
+def _one_spot(
+    sm: NDArray,
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    top: NDArray,
+    reach_px: int,
+) -> NDArray[np.bool_]:
+    """(n,) False for maxima that are only a bump on a brighter one's top: two maxima at most
+    ``reach_px`` apart (per axis) are two dots only if the smoothed image ``sm`` dips between
+    them — somewhere on the segment (at ¼, ½ and ¾) below (1 − :data:`_SADDLE_DEPTH`) of the
+    dimmer one. Two equal Gaussian spots 2.5 filtered sigmas apart dip by 12 %; the maxima
+    a clipped, flat or grainy top breaks into do not."""
+    keep = np.ones(len(r), dtype=bool)
+    i, j = spotfit.near_pairs(r, c, reach_px, sort=False)
+    sel = (top[i] < top[j]) | ((top[i] == top[j]) & (i > j))  # i: the dimmer of the pair
+    i, j = i[sel], j[sel]
+    if len(i) == 0:
+        return keep
+    low = np.full(len(i), np.inf)
+    for t in (0.25, 0.5, 0.75):
+        low = np.minimum(low, _bilinear(sm, r[i] + t * (r[j] - r[i]), c[i] + t * (c[j] - c[i])))
+    keep[i[low >= (1.0 - _SADDLE_DEPTH) * top[i]]] = False
+    return keep
+
+
+def _bilinear(img: NDArray, r: NDArray, c: NDArray) -> NDArray:
+    """``img`` at sub-pixel (row, col) points inside it, bilinear."""
+    r = np.clip(r, 0.0, img.shape[0] - 1.001)
+    c = np.clip(c, 0.0, img.shape[1] - 1.001)
+    r0, c0 = r.astype(np.intp), c.astype(np.intp)
+    fr, fc = r - r0, c - c0
+    top = img[r0, c0] * (1.0 - fc) + img[r0, c0 + 1] * fc
+    bottom = img[r0 + 1, c0] * (1.0 - fc) + img[r0 + 1, c0 + 1] * fc
+    return np.asarray(top * (1.0 - fr) + bottom * fr)
 
 
 def _cut_by_rim(
@@ -669,21 +849,27 @@ def _neighbour_pull(
     shape: tuple[int, int],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """How far each dot's filtered maximum is pulled by its neighbours' light (row, col, px),
-    and which dots are pulled so hard (more than :data:`_FIRST_ORDER_PX`) that they, and the
-    neighbours pulling them, must be fitted jointly instead.
+    and which dots (with the neighbours pulling them) this does not resolve, to be fitted.
 
-    For Gaussian spots of filtered variance v, a neighbour at c_j with a filtered peak
-    ``ratio`` times the dot's moves the dot's maximum by ratio · exp(−d²/2v) · (c_j − c_i)
-    (first order in the neighbour's light). A box filter over the dots' pixels first finds
-    those with another dot within the distance where a twice as bright neighbour would move
-    it by :data:`~omnid.core.spotfit.COUPLING_PX` (:func:`_pull_reach_px`); only those are
-    paired, so well separated dots cost one filter.
+    For Gaussian spots of filtered variance v the filtered image is Σ_j A_j e_j(x) with
+    e_j(x) = exp(−|x − c_j|²/2v); at the maximum p_i of dot i its gradient vanishes and its
+    value is the smoothed peak:
+
+        Σ_j A_j e_j(p_i) (c_j − p_i) = 0,   Σ_j A_j e_j(p_i) = top_i,
+
+    solved for every centre c_i and amplitude A_i by fixed-point iteration
+    (:data:`_PULL_ITERATIONS`, from c = p, A = top: the first step is the first-order pull
+    Σ_j (top_j / top_i) e_j(p_i) (p_j − p_i)). A dot whose centre is still moving, or moved
+    more than :data:`_PULL_MAX_PX`, is left to the fit. A box filter over the dots' pixels
+    first finds those with another dot within the distance where a twice as bright neighbour
+    would move it by :data:`_COUPLING_PX` (:func:`_pull_reach_px`); only those are paired, so
+    well separated dots cost one filter.
     """
     n = len(r)
     pull_r, pull_c = np.zeros(n), np.zeros(n)
-    strong = np.zeros(n, dtype=bool)
+    unresolved = np.zeros(n, dtype=bool)
     if n < 2:
-        return pull_r, pull_c, strong
+        return pull_r, pull_c, unresolved
     half = round(_pull_reach_px(filtered_var))
     ri = np.clip(np.rint(r).astype(np.intp), 0, shape[0] - 1)
     ci = np.clip(np.rint(c).astype(np.intp), 0, shape[1] - 1)
@@ -693,25 +879,43 @@ def _neighbour_pull(
     near = cv2.boxFilter(at, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
     close = np.flatnonzero(near[ri, ci] > 1)  # (uint8 saturates at 255: still > 1)
     if len(close) < 2:
-        return pull_r, pull_c, strong
+        return pull_r, pull_c, unresolved
     i, j = spotfit.near_pairs(r[close], c[close], half + 1, sort=False)
-    i, j = close[i], close[j]
-    dr, dc = r[j] - r[i], c[j] - c[i]
-    ratio = np.abs(top[j]) / np.maximum(np.abs(top[i]), 1e-6)
-    w = ratio * np.exp(-(dr * dr + dc * dc) / (2.0 * filtered_var))
-    pull_r = np.asarray(np.bincount(i, weights=w * dr, minlength=n), dtype=np.float64)
-    pull_c = np.asarray(np.bincount(i, weights=w * dc, minlength=n), dtype=np.float64)
-    hard = w * np.hypot(dr, dc) > _FIRST_ORDER_PX
-    strong[i[hard]] = True
-    strong[j[hard]] = True
-    return pull_r, pull_c, strong
+    if len(i) == 0:
+        return pull_r, pull_c, unresolved
+    m = len(close)
+    pr, pc = r[close], c[close]
+    t = np.abs(top[close]).astype(np.float64)
+    t = np.maximum(t, 1e-6)
+    cr, cc, amp = pr.copy(), pc.copy(), t.copy()
+    inv2v = 1.0 / (2.0 * filtered_var)
+    step = np.zeros(m)
+    for _ in range(_PULL_ITERATIONS):
+        dr, dc = cr[j] - pr[i], cc[j] - pc[i]
+        lj = amp[j] * np.exp(-(dr * dr + dc * dc) * inv2v)  # neighbour j's light at p_i
+        own = np.exp(-((cr - pr) ** 2 + (cc - pc) ** 2) * inv2v)
+        sum_l = np.bincount(i, weights=lj, minlength=m)
+        sum_r = np.bincount(i, weights=lj * dr, minlength=m)
+        sum_c = np.bincount(i, weights=lj * dc, minlength=m)
+        a_own = np.maximum(amp * own, 0.05 * t)
+        new_r, new_c = pr - sum_r / a_own, pc - sum_c / a_own
+        step = np.hypot(new_r - cr, new_c - cc)
+        cr, cc = new_r, new_c
+        amp = np.maximum(t - sum_l, 0.05 * t) / np.maximum(own, 1e-3)
+    pull_r[close], pull_c[close] = pr - cr, pc - cc
+    bad = (step > _COUPLING_PX) | (np.hypot(pr - cr, pc - cc) > _PULL_MAX_PX)
+    if bad.any():
+        hit = bad[i]
+        unresolved[close[i[hit]]] = True
+        unresolved[close[j[hit]]] = True
+    return pull_r, pull_c, unresolved
 
 
 def _pull_reach_px(filtered_var: float, ratio: float = 2.0) -> float:
     """The distance beyond which a neighbour ``ratio`` times as bright no longer moves a
-    filtered maximum by :data:`~omnid.core.spotfit.COUPLING_PX` (see :func:`_pulled`)."""
+    filtered maximum by :data:`_COUPLING_PX`."""
     d = math.sqrt(filtered_var)  # the pull peaks at one filtered sigma, then falls
-    while ratio * d * math.exp(-d * d / (2.0 * filtered_var)) > spotfit.COUPLING_PX:
+    while ratio * d * math.exp(-d * d / (2.0 * filtered_var)) > _COUPLING_PX:
         d += 0.1
     return d
 

@@ -23,9 +23,9 @@ fitted too, so window and taper follow the measured spot.
 
 Cost: the template and the taper are separable, so every window sum is one small batched
 matrix product or a product of 1-D sums, and a neighbour's share of those sums is a product
-of two 1-D overlaps. Which neighbours matter is decided in closed form (:func:`_coupling_px`):
-for spots small against their spacing none do, and the fit costs three passes of a few
-vectorised operations per dot.
+of two 1-D overlaps. A neighbour is taken out of a dot's window when its light reaches it
+(within twice the window's half-size per axis); for spots small against their spacing none
+is, and the fit costs three passes of a few vectorised operations per dot.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 #: Window half-size per spot sigma: the fit sees ±3 σ of each dot.
 WINDOW_PER_SIGMA = 3.0
@@ -41,13 +42,15 @@ WINDOW_PER_SIGMA = 3.0
 TAPER_PER_SIGMA = 2.0
 #: Smallest and largest window half-size, px.
 MIN_HALF_PX, MAX_HALF_PX = 2, 10
-#: Gauss–Newton passes over all dots.
+#: Gauss–Newton passes over all dots, updated in turn (see :func:`fit_spots`) ...
 ITERATIONS = 3
+#: ... and for small spots, updated all at once (their neighbours overlap them little).
+JACOBI_ITERATIONS = 2
+#: Spots larger than this (sigma, px) overlap their neighbours so much that the dots are
+#: updated in turn (Gauss–Seidel), not all at once (Jacobi: it oscillates there).
+SEQUENTIAL_FROM_PX = 1.5
 #: Largest centre step per pass, px (a fit that wants more is not near a dot).
 MAX_STEP_PX = 0.75
-#: A neighbour is taken out of a dot's window when it would move that dot's centre by more
-#: than this (closed-form estimate, :func:`_coupling_px`), px.
-COUPLING_PX = 0.01
 
 _SQRT2 = math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -81,85 +84,46 @@ def pixel_gaussian(
     return g, (p_hi - p_lo) / sigma, -(p_hi * hi - p_lo * lo) / sigma
 
 
+def window_gaussian(
+    u0: NDArray[np.float64], size: int, sigma: NDArray[np.float64], derivatives: bool = True
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`pixel_gaussian` on rows of ``size`` consecutive pixels, the first ``u0`` (n, 1)
+    px from the centre, for ``sigma`` (n, 1): the pixels share their edges, so each edge's
+    erf and density are evaluated once. Arrays (n, size)."""
+    z = (u0 - 0.5 + np.arange(size + 1, dtype=np.float64)) / sigma  # the edges, in sigmas
+    cdf = erf(z / _SQRT2)
+    g = 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+    if not derivatives:
+        zero = np.zeros_like(g)
+        return g, zero, zero
+    pdf = np.exp(-0.5 * z * z) * _INV_SQRT_2PI
+    zp = z * pdf
+    return g, (pdf[:, 1:] - pdf[:, :-1]) / sigma, -(zp[:, 1:] - zp[:, :-1]) / sigma
+
+
 def window_half_px(sigma_px: float) -> int:
     """The fit's window half-size for spots of ``sigma_px``."""
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
 
 
-def _coupling_px(
-    dist_px: NDArray[np.float64], sigma_px: float, ratio: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """How far (px) a neighbour ``dist_px`` away, ``ratio`` times as bright, would move a dot's
-    fitted centre if left in its window: the 1-D continuous form of the fit's shift equation
-    for Gaussians of ``sigma_px`` under the taper (an upper bound of the 2-D effect)."""
-    s2 = sigma_px * sigma_px
-    t2 = (TAPER_PER_SIGMA * sigma_px) ** 2
-    w2 = 1.0 / (1.0 / t2 + 1.0 / s2)  # taper × template
-    u2 = 1.0 / (1.0 / t2 + 2.0 / s2)  # taper × template²
-    mu = dist_px * w2 / (w2 + s2)
-    v = math.sqrt(w2 * s2 / (w2 + s2))
-    return ratio * s2 * mu * v * np.exp(-(dist_px**2) / (2.0 * (w2 + s2))) / u2**1.5
-
-
 def near_pairs(
-    rows: NDArray, cols: NDArray, reach: int, sort: bool = True
+    rows: NDArray, cols: NDArray, reach: float, sort: bool = True
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """All pairs (i, j), i ≠ j, of points at most ``reach`` px apart per axis (sorted by i if
-    ``sort``): the points are binned in cells of ``reach`` px and each cell is paired with
-    itself and the four cells after it (a sort and a few searches, not all n² distances)."""
-    n = len(rows)
+    """All pairs (i, j), i ≠ j, of points at most ``reach`` px apart per axis, both ways
+    round (sorted by i if ``sort``): a k-d tree's pairs in the maximum norm."""
     empty = np.zeros(0, np.intp), np.zeros(0, np.intp)
-    if n < 2:
+    if len(rows) < 2:
         return empty
-    cell = max(int(reach), 1)
-    cr = np.floor(rows / cell).astype(np.int64)
-    cc = np.floor(cols / cell).astype(np.int64)
-    cc -= cc.min() - 1
-    width = int(cc.max()) + 2
-    key = cr * width + cc
-    order = np.argsort(key, kind="stable")
-    sorted_key = key[order]
-    parts_i, parts_j = [], []
-    for dr, dc in ((0, 0), (0, 1), (1, -1), (1, 0), (1, 1)):
-        want = key + dr * width + dc
-        lo = np.searchsorted(sorted_key, want, "left")
-        count = np.searchsorted(sorted_key, want, "right") - lo
-        total = int(count.sum())
-        if total == 0:
-            continue
-        parts_i.append(np.repeat(np.arange(n), count))
-        parts_j.append(order[np.repeat(lo - (np.cumsum(count) - count), count) + np.arange(total)])
-    if not parts_i:
+    tree = cKDTree(np.column_stack([rows, cols]).astype(np.float64))
+    pairs = tree.query_pairs(float(reach), p=np.inf, output_type="ndarray")
+    if len(pairs) == 0:
         return empty
-    i, j = np.concatenate(parts_i), np.concatenate(parts_j)
-    keep = (i < j) | ((key[i] != key[j]) & (i != j))  # each unordered pair once, no self
-    keep &= (np.abs(rows[i] - rows[j]) <= reach) & (np.abs(cols[i] - cols[j]) <= reach)
-    i, j = i[keep], j[keep]
-    i, j = np.concatenate([i, j]), np.concatenate([j, i])
+    i = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.intp)
+    j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.intp)
     if sort:
         by_i = np.argsort(i, kind="stable")
         i, j = i[by_i], j[by_i]
-    return i.astype(np.intp), j.astype(np.intp)
-
-
-def _neighbour_pairs(
-    rows: NDArray,
-    cols: NDArray,
-    reach: int,
-    sigma_px: float,
-    peak: NDArray[np.float64],
-    sort: bool = True,
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Pairs (i, j), sorted by i if ``sort``, of dots (at ``rows``, ``cols``, px) at most
-    ``reach`` px apart per axis where j's light would move i's centre by more than
-    :data:`COUPLING_PX`."""
-    i, j = near_pairs(rows, cols, reach, sort)
-    if len(i) == 0:
-        return i, j
-    dist = np.hypot(rows[i] - rows[j], cols[i] - cols[j]).astype(np.float64)
-    ratio = np.abs(peak[j]) / np.maximum(np.abs(peak[i]), 1e-9)
-    strong = _coupling_px(dist, sigma_px, ratio) > COUPLING_PX
-    return i[strong], j[strong]
+    return i, j
 
 
 #: The 7 basis functions of a dot's fit as sums of (row, column) index pairs into the per-axis
@@ -189,7 +153,7 @@ def fit_spots(
     sigma_px: float,
     peak: NDArray,
     start: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
-    iterations: int = ITERATIONS,
+    iterations: int | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Fit every dot of a background-free ``image`` at once (see the module doc).
 
@@ -200,10 +164,14 @@ def fit_spots(
     update), so a clipped top carries the information it has and no more. Returns, per dot,
     the centre (row, col) px, the fitted peak (gray levels of the continuous profile,
     A / 2πσ²) and sigma (px).
+
+    Each dot is updated against its neighbours' current models: all at once (Jacobi), or for
+    spots larger than :data:`SEQUENTIAL_FROM_PX` in turn (Gauss–Seidel over four groups: the
+    dots of a checkerboard of cells of the neighbour reach, so that no two dots of one group
+    see each other), as where spots overlap strongly updating all at once oscillates.
     """
     n = len(rows)
     h = window_half_px(sigma_px)
-    size = 2 * h + 1
     off = np.arange(-h, h + 1, dtype=np.float64)
     win_r = rows[:, None] + off[None, :]  # the window's pixel rows (n, size)
     win_c = cols[:, None] + off[None, :]
@@ -212,69 +180,130 @@ def fit_spots(
     inside = ((win_r >= 0) & (win_r < image.shape[0]))[:, :, None]
     inside = inside & ((win_c >= 0) & (win_c < image.shape[1]))[:, None, :]
     win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
-    sat_idx = np.zeros(0, np.intp)
-    sat_win = np.zeros((0, size, size), bool)
+    sat_all: NDArray[np.bool_] | None = None
     if saturated is not None:
         sat_all = saturated[rr, cc_] & inside
-        sat_idx = np.flatnonzero(sat_all.any(axis=(1, 2)))
-        sat_win = sat_all[sat_idx]
+        if not sat_all.any():
+            sat_all = None
     if start is None:
         cr, cc = rows.astype(np.float64), cols.astype(np.float64)
     else:
         cr, cc = (np.asarray(a, dtype=np.float64).copy() for a in start)
-    s_min, s_max = 0.5 * sigma_px, h / 2.0
-    s = np.full(n, float(sigma_px))
-    peak0 = np.asarray(peak, dtype=np.float64)
-    mass = peak0 * 2.0 * math.pi * s * s
-    b0, br, bc = np.zeros(n), np.zeros(n), np.zeros(n)
-    pair_i, pair_j = _neighbour_pairs(cr, cc, 2 * h, sigma_px, peak0)
+    st = _FitState(
+        win,
+        sat_all,
+        win_r,
+        win_c,
+        cr,
+        cc,
+        np.full(n, float(sigma_px)),
+        np.asarray(peak, dtype=np.float64) * 2.0 * math.pi * sigma_px * sigma_px,
+        (0.5 * sigma_px, h / 2.0),
+    )
+    # Every neighbour whose light (to ~3 σ) reaches a dot's window is taken out of it.
+    reach = 2 * h
+    pair_i, pair_j = near_pairs(cr, cc, reach)
+    if len(pair_i) == 0 or sigma_px <= SEQUENTIAL_FROM_PX:
+        groups = [np.arange(n)]
+    else:
+        colour = (np.floor(cr / reach).astype(np.int64) % 2) * 2
+        colour += np.floor(cc / reach).astype(np.int64) % 2
+        groups = [g for g in (np.flatnonzero(colour == k) for k in range(4)) if len(g)]
+    if iterations is None:
+        iterations = ITERATIONS if len(groups) > 1 else JACOBI_ITERATIONS
     for _ in range(iterations):
-        ur = win_r - cr[:, None]
-        uc = win_c - cc[:, None]
-        gr, dr, sr = pixel_gaussian(ur, s[:, None])
-        gc, dc, sc = pixel_gaussian(uc, s[:, None])
-        taper = -0.5 / (TAPER_PER_SIGMA * s[:, None]) ** 2
-        wr, wc = np.exp(ur * ur * taper), np.exp(uc * uc * taper)
-        data = win
-        if len(sat_idx):
-            k = sat_idx
-            own = mass[k, None, None] * gr[k, :, None] * gc[k, None, :]
-            own += b0[k, None, None] + br[k, None, None] * ur[k, :, None]
-            own += bc[k, None, None] * uc[k, None, :]
-            data = win.copy()
-            data[k] = np.where(sat_win, np.maximum(win[k], own), win[k])
-        # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}; every basis is a sum of row ⊗ column
-        # products of them, so every weighted window sum is a product of 1-D sums or of
-        # weighted row vectors · data · weighted column vectors.
-        one = np.ones_like(ur)
-        fr = np.stack([gr, one, sr, dr, ur], axis=1)  # (n, 5, size)
-        fc = np.stack([gc, one, sc, dc, uc], axis=1)
-        frw = fr * wr[:, None, :]
-        fcw = np.swapaxes(fc * wc[:, None, :], 1, 2)  # (n, size, 5)
-        q = frw @ data @ fcw  # (n, 5, 5)
-        if len(pair_i):
-            q -= _neighbour_sums(pair_i, pair_j, frw, fcw, win_r, win_c, cr, cc, s, mass, n)
-        pr = frw @ np.swapaxes(fr, 1, 2)  # (n, 5, 5) weighted 1-D sums of products, rows
-        pc = np.swapaxes(fcw, 1, 2) @ np.swapaxes(fc, 1, 2)  # columns
-        # The current model A·G⊗G + b0·1⊗1 + b_r·u⊗1 + b_c·1⊗u summed like the data: the
-        # residual's sums, i.e. the exact gradient.
-        q -= mass[:, None, None] * pr[:, :, 0, None] * pc[:, None, :, 0]
-        q -= b0[:, None, None] * pr[:, :, 1, None] * pc[:, None, :, 1]
-        q -= br[:, None, None] * pr[:, :, 4, None] * pc[:, None, :, 1]
-        q -= bc[:, None, None] * pr[:, :, 1, None] * pc[:, None, :, 4]
-        grad = q.reshape(n, 25)[:, _Q_INDEX] @ _Q_ADD  # (n, 7)
-        d_mass, d_b0, d_s, d_r, d_br, d_c, d_bc = _gauss_newton_step(grad, pr, pc)
-        new_mass = mass + d_mass
-        safe = np.where(np.abs(new_mass) > 1e-9, new_mass, 1e-9)
-        step_r = np.clip(-d_r / safe, -MAX_STEP_PX, MAX_STEP_PX)
-        step_c = np.clip(-d_c / safe, -MAX_STEP_PX, MAX_STEP_PX)
-        s = np.clip(s * np.clip(1.0 + d_s / (safe * s), 0.75, 1.33), s_min, s_max)
-        mass = new_mass
-        br, bc = br + d_br, bc + d_bc
-        # The plane b0 + b·(x − c) re-expressed about the moved centre.
-        b0 = b0 + d_b0 + br * step_r + bc * step_c
-        cr, cc = cr + step_r, cc + step_c
-    return cr, cc, mass / (2.0 * math.pi * s * s), s
+        for g in groups:
+            if len(groups) == 1:
+                _update(st, g, pair_i, pair_j)
+            else:
+                sel = np.isin(pair_i, g)
+                _update(st, g, pair_i[sel], pair_j[sel])
+    return st.cr, st.cc, st.mass / (2.0 * math.pi * st.s * st.s), st.s
+
+
+class _FitState:
+    """The dots' windows and their current fit (see :func:`fit_spots`)."""
+
+    def __init__(
+        self,
+        win: NDArray[np.float64],
+        sat: NDArray[np.bool_] | None,
+        win_r: NDArray[np.float64],
+        win_c: NDArray[np.float64],
+        cr: NDArray[np.float64],
+        cc: NDArray[np.float64],
+        s: NDArray[np.float64],
+        mass: NDArray[np.float64],
+        s_range: tuple[float, float],
+    ) -> None:
+        n = len(cr)
+        self.win, self.sat, self.win_r, self.win_c = win, sat, win_r, win_c
+        self.cr, self.cc, self.s, self.mass = cr, cc, s, mass
+        self.b0, self.br, self.bc = np.zeros(n), np.zeros(n), np.zeros(n)
+        self.s_range = s_range
+
+
+def _update(
+    st: _FitState, k: NDArray[np.intp], pair_i: NDArray[np.intp], pair_j: NDArray[np.intp]
+) -> None:
+    """One Gauss–Newton step of the dots ``k`` against the current models of their neighbours
+    (pairs (i, j), i in ``k``, sorted by i)."""
+    n = len(k)
+    win_r, win_c = st.win_r[k], st.win_c[k]
+    cr, cc, s, mass = st.cr[k], st.cc[k], st.s[k], st.mass[k]
+    b0, br, bc = st.b0[k], st.br[k], st.bc[k]
+    ur = win_r - cr[:, None]
+    uc = win_c - cc[:, None]
+    size = ur.shape[1]
+    gr, dr, sr = window_gaussian(ur[:, :1], size, s[:, None])
+    gc, dc, sc = window_gaussian(uc[:, :1], size, s[:, None])
+    taper = -0.5 / (TAPER_PER_SIGMA * s[:, None]) ** 2
+    wr, wc = np.exp(ur * ur * taper), np.exp(uc * uc * taper)
+    data = st.win[k]
+    if st.sat is not None:
+        sat = st.sat[k]
+        hit = np.flatnonzero(sat.any(axis=(1, 2)))
+        if len(hit):
+            own = mass[hit, None, None] * gr[hit, :, None] * gc[hit, None, :]
+            own += b0[hit, None, None] + br[hit, None, None] * ur[hit, :, None]
+            own += bc[hit, None, None] * uc[hit, None, :]
+            data = data.copy()
+            data[hit] = np.where(sat[hit], np.maximum(data[hit], own), data[hit])
+    # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}; every basis is a sum of row ⊗ column
+    # products of them, so every weighted window sum is a product of 1-D sums or of
+    # weighted row vectors · data · weighted column vectors.
+    one = np.ones_like(ur)
+    fr = np.stack([gr, one, sr, dr, ur], axis=1)  # (n, 5, size)
+    fc = np.stack([gc, one, sc, dc, uc], axis=1)
+    frw = fr * wr[:, None, :]
+    fcw = np.swapaxes(fc * wc[:, None, :], 1, 2)  # (n, size, 5)
+    q = frw @ data @ fcw  # (n, 5, 5)
+    if len(pair_i):
+        local = np.full(len(st.cr), -1, np.intp)
+        local[k] = np.arange(n)
+        q -= _neighbour_sums(local[pair_i], pair_j, frw, fcw, win_r, win_c, st, n)
+    pr = frw @ np.swapaxes(fr, 1, 2)  # (n, 5, 5) weighted 1-D sums of products, rows
+    pc = np.swapaxes(fcw, 1, 2) @ np.swapaxes(fc, 1, 2)  # columns
+    # The current model A·G⊗G + b0·1⊗1 + b_r·u⊗1 + b_c·1⊗u summed like the data: the
+    # residual's sums, i.e. the exact gradient.
+    q -= mass[:, None, None] * pr[:, :, 0, None] * pc[:, None, :, 0]
+    q -= b0[:, None, None] * pr[:, :, 1, None] * pc[:, None, :, 1]
+    q -= br[:, None, None] * pr[:, :, 4, None] * pc[:, None, :, 1]
+    q -= bc[:, None, None] * pr[:, :, 1, None] * pc[:, None, :, 4]
+    grad = q.reshape(n, 25)[:, _Q_INDEX] @ _Q_ADD  # (n, 7)
+    d_mass, d_b0, d_s, d_r, d_br, d_c, d_bc = _gauss_newton_step(grad, pr, pc)
+    new_mass = mass + d_mass
+    safe = np.where(np.abs(new_mass) > 1e-9, new_mass, 1e-9)
+    step_r = np.clip(-d_r / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    step_c = np.clip(-d_c / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    s_min, s_max = st.s_range
+    st.s[k] = np.clip(s * np.clip(1.0 + d_s / (safe * s), 0.75, 1.33), s_min, s_max)
+    st.mass[k] = new_mass
+    br, bc = br + d_br, bc + d_bc
+    st.br[k], st.bc[k] = br, bc
+    # The plane b0 + b·(x − c) re-expressed about the moved centre.
+    st.b0[k] = b0 + d_b0 + br * step_r + bc * step_c
+    st.cr[k], st.cc[k] = cr + step_r, cc + step_c
 
 
 def _gauss_newton_step(
@@ -324,20 +353,20 @@ def _neighbour_sums(
     fcw: NDArray[np.float64],
     win_r: NDArray[np.float64],
     win_c: NDArray[np.float64],
-    cr: NDArray[np.float64],
-    cc: NDArray[np.float64],
-    s: NDArray[np.float64],
-    mass: NDArray[np.float64],
+    st: _FitState,
     n: int,
 ) -> NDArray[np.float64]:
-    """(n, 5, 5): what the current models of the neighbours j add to the window sums of the
-    dots i (pairs sorted by i). A model is separable, so each pair's share is an outer product
-    of two 1-D overlaps."""
-    gjr = pixel_gaussian(win_r[i] - cr[j, None], s[j, None], derivatives=False)[0]
-    gjc = pixel_gaussian(win_c[i] - cc[j, None], s[j, None], derivatives=False)[0]
+    """(n, 5, 5): what the current models of the neighbours j (indices into ``st``) add to the
+    window sums of the dots i (indices into ``frw``, ``fcw``, ``win_r``, ``win_c``; pairs
+    sorted by i). A model is separable, so each pair's share is an outer product of two 1-D
+    overlaps."""
+    size = win_r.shape[1]
+    sj = st.s[j, None]
+    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
+    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
     vr = (frw[i] @ gjr[:, :, None])[:, :, 0]  # (pairs, 5)
     vc = (gjc[:, None, :] @ fcw[i])[:, 0, :]
-    contrib = (mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
+    contrib = (st.mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
     out = np.zeros((n, 25))
     starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
     out[i[starts]] = np.add.reduceat(contrib, starts, axis=0)

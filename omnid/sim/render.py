@@ -650,19 +650,23 @@ def render_camera_pair(
     options: RenderOptions,
     rng: np.random.Generator,
     flux: ArrayLike | None = None,
+    scene_seed: int | None = None,
 ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
     """Mask and base images of one camera for dots at image positions ``rc`` (N, 2) px.
 
     ``flux`` (N,) scales each dot's light (the beam's power and :func:`surface_shading`; default
-    1). Gray (H, W) uint8, or BGR (H, W, 3) uint8 when ``options.color``. Dots outside the
-    mirror disk are not drawn; the part of a dot's light outside the disk is lost; the sensor
-    rounds and clips at 0 and 255.
+    1). ``scene_seed`` fixes the scene's texture (a camera fixed to the chair sees the same
+    scene frame after frame; default: drawn from ``rng`` like everything else). Gray (H, W)
+    uint8, or BGR (H, W, 3) uint8 when ``options.color``. Dots outside the mirror disk are not
+    drawn; the part of a dot's light outside the disk is lost; the sensor rounds and clips at
+    0 and 255.
     """
     shape = cam.image_shape
     pos, f, disk = _dots_in_disk(cam, rc, flux)
     spots = options.spots
     sig, amp = _spot_draws(spots, f, rng)
-    texture = _smooth_texture(shape, rng)
+    scene_rng = rng if scene_seed is None else np.random.default_rng(scene_seed)
+    texture = _smooth_texture(shape, scene_rng)
     scene = np.where(
         disk, options.background_level + options.background_texture * texture, OUTSIDE_DISK_LEVEL
     ).astype(np.float32)
