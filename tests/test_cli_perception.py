@@ -169,7 +169,12 @@ def _one_line_refusal(capsys, code: int, out: Path | None = None) -> str:
     return err
 
 
-def test_calibrate_refuses_the_floor_alone_saying_what_to_capture(calibrated, capsys) -> None:
+def test_calibrate_on_the_floor_alone_notes_the_unknown_source_and_perceive_works(
+    calibrated, capsys
+) -> None:
+    """Floor only: written, with a note on what an --extra capture adds; perceive reads the
+    floor, places the source from the scene's own box when it can (else counts its dots as
+    not understood) and never reports a wrong floor there."""
     folder, _ = calibrated
     out = folder / "floor_only.yaml"
     floor = [
@@ -177,8 +182,23 @@ def test_calibrate_refuses_the_floor_alone_saying_what_to_capture(calibrated, ca
         for n in ("mask1", "base1", "mask2", "base2")
         for a in (f"--{n}", str(folder / f"floor_{n}.png"))
     ]
-    code = main(["calibrate", *floor, "--floor-depth-mm", "1100", "--out", str(out)])
-    assert "--extra" in _one_line_refusal(capsys, code, out)
+    capsys.readouterr()
+    assert main(["calibrate", *floor, "--floor-depth-mm", "1100", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "source unknown" in captured.out
+    assert "--extra" in captured.err and "box or a wall" in captured.err
+    assert main(["perceive", "--calib", str(out), *scene_args(folder), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    pts = doc["points"]
+    h = np.array([p["h"] for p in pts])
+    floor_pts = np.array([p["class"] == "floor" for p in pts])
+    assert floor_pts.sum() > 100 and np.all(np.abs(h[floor_pts]) < 30.0)
+    # the box (300 mm high): read from its own dots, or left not understood
+    placed = doc["source_estimate"] is not None
+    tops = np.sum(np.abs(h - 300.0) < 10.0)
+    assert (placed and tops > 20 and doc["not_understood"] < 5) or (
+        not placed and doc["not_understood"] > 20
+    )
 
 
 def test_calibrate_refuses_extras_with_nothing_off_the_floor(calibrated, tmp_path, capsys) -> None:

@@ -44,7 +44,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from omnid.core.calibration import calibrate_from_capture
-    from omnid.errors import CalibrationError
     from omnid.io_images import read_capture
 
     capture = read_capture(args.mask1, args.base1, args.mask2, args.base2)
@@ -54,13 +53,18 @@ def run(args: argparse.Namespace) -> int:
         m1, b1, m2, b2 = (str(d / f"{n}.png") for n in NAMES)
         extras.append(read_capture(m1, b1, m2, b2, capture.shape))
     calib = calibrate_from_capture(capture, args.floor_depth_mm, args.baseline_mm, extras=extras)
-    if not extras:  # the floor is fine, but it cannot place the laser: nothing written
-        raise CalibrationError(
-            "the floor capture alone cannot place the laser's source: capture a box or a wall "
-            "0.5-1.5 m ahead (filling part of the view) and pass it with --extra DIR"
-        )
     calib.save(args.out)
     r = calib.residuals
+    if not extras:  # the floor is fine, but it cannot place the laser's source
+        import sys
+
+        print(
+            "calibrate: note: floor only, so the laser's source is unknown (assumed near the "
+            "baseline's midpoint, |O_Z| <= 200 mm): floor dots are read as usual, other dots "
+            "only where the capture itself places the source, else reported as not understood; "
+            "an --extra capture of a box or a wall 0.5-1.5 m ahead makes the source known",
+            file=sys.stderr,
+        )
     if args.json:
         print(json.dumps({"out": str(args.out), "residuals": r}))
         return 0
@@ -74,11 +78,15 @@ def run(args: argparse.Namespace) -> int:
         f"row rms {r['row_rms_px']:.3f} px, disparity rms {r['disparity_rms_px']:.3f} px, "
         f"f/K {c1.f_over_k_px:.2f}/{c2.f_over_k_px:.2f} px"
     )
+    where = (
+        f"source at ({ox:.1f}, {oy:.1f}, {oz:.1f}) mm ± ({sx:.1f}, {sy:.1f}, {sz:.1f}) from "
+        f"{int(r.get('source_dots', 0))} dots off the floor"
+        if las.source_known
+        else "source unknown (no --extra)"
+    )
     print(
         f"laser: {len(las)} beams ({int(r.get('beams_one_camera', 0))} seen by one camera on "
-        f"the floor, {int(r.get('beams_off_floor', 0))} only off it), source at "
-        f"({ox:.1f}, {oy:.1f}, {oz:.1f}) mm ± ({sx:.1f}, {sy:.1f}, {sz:.1f}) from "
-        f"{int(r.get('source_dots', 0))} dots off the floor: line residual "
+        f"the floor, {int(r.get('beams_off_floor', 0))} only off it), {where}: line residual "
         f"{r.get('source_line_rms_mm', 0.0):.2f} mm rms, track residual "
         f"{r.get('extra_track_rms_px', 0.0):.3f} px rms, "
         f"{100 * r.get('extra_matched_fraction', 0.0):.0f} % of the extras' dots matched"

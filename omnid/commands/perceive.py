@@ -160,6 +160,10 @@ def run(args: argparse.Namespace) -> int:
                 "dots": health.dots,
                 "ok": health.ok,
             },
+            "not_understood": result.not_understood,
+            "source_estimate": None
+            if result.source_estimate is None
+            else {"source_mm": result.source_estimate[0], "sigma_mm": result.source_estimate[1]},
             "nearest_obstacle_mm": None if math.isinf(nearest["obstacle"]) else nearest["obstacle"],
             "nearest_dropoff_mm": None if math.isinf(nearest["dropoff"]) else nearest["dropoff"],
             "points": cloud.to_records(),
@@ -176,6 +180,12 @@ def run(args: argparse.Namespace) -> int:
     )
     if health is not None:
         print(health.describe())
+    if result.not_understood:
+        print(
+            f"{result.not_understood} dots off the floor not understood (the calibration does "
+            "not know the laser's source and this capture could not place it): not free space; "
+            "recalibrate with --extra to read them"
+        )
     for label, what in (("obstacle", "obstacle"), ("dropoff", "drop-off")):
         d = nearest[label]
         where = f"{d:.0f} mm" if math.isfinite(d) else "none seen"

@@ -78,7 +78,8 @@ class CalibrationSettings:
     seed: int = 0
     disk_threshold: float | None = None  # gray level of the disk edge; None = automatic
     # The laser's source: where it is searched (the prior box, mm, ± per axis around
-    # SOURCE_PRIOR_MM: SPEC §2 "a few centimetres" sideways, "±150 mm" above or below, with room),
+    # SOURCE_PRIOR_MM: SPEC §2 "a few centimetres" sideways, "±150 mm" above or below, with room;
+    # 200 mm lost one rig's source over tools/eval_rigs.py: 112 mm off),
     # how many off-floor dots must agree on it, and its vote cell.
     source_box_mm: tuple[float, float, float] = (100.0, 100.0, 250.0)
     min_source_dots: int = 12
@@ -774,6 +775,18 @@ def locate_source(
     for axis in range(3):
         sm = sm + np.roll(sm, 1, axis) + np.roll(sm, -1, axis)
     kz, ky, kx = np.unravel_index(int(np.argmax(sm)), sm.shape)
+    # How clear the winner stands: the best vote elsewhere (beyond 25 mm) over the winner's. A
+    # second point many lines also meet is another reading of the same dots (a pairing shifted
+    # by one beam on a plane gives another plane, and another source, that fit as well).
+    peak = float(sm[kz, ky, kx])
+    rad = 5
+    rest = sm.copy()
+    rest[
+        max(kz - rad, 0) : kz + rad + 1,
+        max(ky - rad, 0) : ky + rad + 1,
+        max(kx - rad, 0) : kx + rad + 1,
+    ] = 0.0
+    runner_up = float(rest.max()) / peak if peak > 0 else 1.0
     o = np.array(
         [
             kx * cell - box[0] + SOURCE_PRIOR_MM[0],
@@ -813,6 +826,7 @@ def locate_source(
         "source_dots": float(len(inl)),
         "source_off_floor_dots": float(n_off),
         "source_line_rms_mm": float(np.sqrt(np.mean(dist**2))),
+        "source_runner_up": runner_up,
     }
     return o, sigma_o, info
 

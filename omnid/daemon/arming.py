@@ -10,6 +10,11 @@ Two rules, both applied by :class:`~omnid.daemon.core.ControlCore` every cycle:
   its thresholds or in the stop pose, the stick centred, no motion key held). A source that is
   silent is not at rest: a tilt sensor that is still unplugged re-arms nothing. When nothing was
   driving, the fault's clearing re-arms.
+- **Armed at start-up.** A continuous source (head tilt, joystick) drives only after it has
+  been seen live and at rest once since the daemon started: a head still tilted, or a stick
+  still pushed, when a restarted daemon comes up (systemd restarts one whose loop died) does not
+  set the chair moving. (With the shipped neutral-pose calibration a tilted head cannot even
+  calibrate.)
 - **A new live demand after a stall.** When the control loop has not run for longer than two
   command periods (the event loop stalled, the machine froze), the first command is zero
   (:meth:`ControlCore.step`) and motion needs input that arrived after the stall: a demand
@@ -41,6 +46,7 @@ class Arming:
         self.live_after_s = -math.inf  # motion needs input newer than this (after a stall)
         self._last_driver: str | None = None  # the source of the previous cycle's motion
         self._throttle = LogThrottle(log, log_interval_s)
+        self.at_rest_seen: set[str] = set()  # continuous sources seen at rest since start
 
     def on_fault(self, reason: str, now_s: float) -> None:
         """A fault is active in this cycle (called every cycle while it lasts)."""
@@ -54,6 +60,13 @@ class Arming:
         self.cleared_s = None
         self._last_driver = None
 
+    def observe(self, mux: RiderMux, now_s: float) -> None:
+        """Every cycle, whatever else happens: note the sources seen at rest (start-up rule)."""
+        if len(self.at_rest_seen) < len(_CONTINUOUS):
+            for name in _CONTINUOUS:
+                if name not in self.at_rest_seen and mux.released(name, now_s, -math.inf):
+                    self.at_rest_seen.add(name)
+
     def on_stall(self, now_s: float) -> None:
         """The control loop did not run for too long: motion needs input newer than now."""
         self.live_after_s = now_s
@@ -61,6 +74,13 @@ class Arming:
     def filter(self, demand: RiderDemand, mux: RiderMux, now_s: float) -> RiderDemand:
         """The demand allowed in a cycle without an active fault: ``demand`` itself, or a stop
         (reason ``rearm_wait`` or ``stall_wait``) while a rule holds motion back."""
+        if self.enabled:
+            src = demand.source
+            if demand.moving and src in _CONTINUOUS and src not in self.at_rest_seen:
+                self._throttle.warning(
+                    "start", "motion refused until %s has been seen at rest since start", src
+                )
+                return RiderDemand(stop=True, source=src, reason="rearm_wait")
         if self.fault is not None:
             if self.cleared_s is None:
                 self.cleared_s = now_s
@@ -96,3 +116,4 @@ class Arming:
 
 
 _SOURCES = ("tilt", "joystick", "keyboard")
+_CONTINUOUS = ("tilt", "joystick")

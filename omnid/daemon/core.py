@@ -74,6 +74,9 @@ STOPPING_FAULTS = (
 #: A capture whose dots fit the calibration less than this (share on a calibrated laser beam,
 #: ``PointCloud.calibration_fit``) means the rig was knocked: the pipeline's own threshold.
 _MIN_CALIBRATION_FIT = HealthSettings().min_explained
+# this many dots off the floor without a beam make a capture unusable (a ghost or two pair by
+# chance; an obstacle lights dozens)
+_MIN_NOT_UNDERSTOOD = 3
 
 
 class StatusSample(Protocol):
@@ -166,6 +169,8 @@ class ControlCore:
         self.perception_time_s: float | None = None
         # the last capture did not fit the calibration (the rig was knocked): no forward motion
         self.calibration_lost = False
+        # the last capture had dots no known beam explains (floor-only calibration): not used
+        self.not_understood = False
         self.last_report: CycleReport | None = None
         self._last_step_s: float | None = None
         # (t, x, y, θ, path length): odometry for late perception and the travel bound
@@ -247,6 +252,19 @@ class ControlCore:
                 )
             self.calibration_lost = True
             return
+        if cloud.not_understood >= _MIN_NOT_UNDERSTOOD:
+            # dots off the floor that no known beam explains (floor-only calibration): that area
+            # is not free space, and the capture is kept out of the map — perception goes stale
+            # and the freshness rule stops the chair, as with no capture
+            if not self.not_understood:
+                log.warning(
+                    "perception: %d dots off the floor not understood (the laser's source is "
+                    "unknown: recalibrate with --extra); such captures are not used",
+                    cloud.not_understood,
+                )
+            self.not_understood = True
+            return
+        self.not_understood = False
         if self.calibration_lost and math.isfinite(fit):
             log.warning("calibration_lost cleared: %.0f %% of the dots fit again", 100 * fit)
             self.calibration_lost = False
@@ -363,6 +381,7 @@ class ControlCore:
         demand = self.mux.decide(now_s)
         if self.halt:
             demand = RiderDemand(stop=True, source="daemon", reason="shutdown_stale")
+        self.arming.observe(self.mux, now_s)
         # inputs that went stale during a stall are the stall's doing, not a fault of their own
         lost = self._inputs_lost(now_s)
         loop_stalled = gap > cfg.control_unit.max_command_age_s + 1e-6
@@ -394,7 +413,14 @@ class ControlCore:
             return self._zero(now_s, demand, code)
         if loop_stalled:
             self.arming.filter(demand, self.mux, now_s)  # a release is a release, even now
-            return self._zero(now_s, demand, Reason.FAULT)
+            ramp = self.motion.ramp
+            v, w = ramp.v_mm_s, ramp.omega_rad_s
+            cmd = self._zero(now_s, demand, Reason.FAULT)
+            if gap < cfg.control_unit.unit_watchdog_s:
+                # the unit kept the wheels going through the stall: resume from the ramp's
+                # speed (integrators reset), not from a standstill the chair never reached
+                ramp.v_mm_s, ramp.omega_rad_s = v, w
+            return cmd
         for name in lost:
             self.arming.on_fault(f"{name}_lost", now_s)
         if (

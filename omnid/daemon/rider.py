@@ -91,9 +91,10 @@ class TiltSettings(Settings):
     dwell_s: float = setting(0.3, 0.0, 5.0)
     roll_offset_deg: float = setting(0.0, -45.0, 45.0)  # calibrated neutral pose
     pitch_offset_deg: float = setting(0.0, -45.0, 45.0)
-    # no reading for this long → zero duty at once (the sensor reads every 10 ms; a lost
-    # sensor must stop the wheels within 60 ms); also the gap after which the dwell restarts
-    timeout_s: float = setting(0.04, 0.015, 1.0)
+    # no reading for this long → zero duty at once (the sensor reads every 10 ms); also the gap
+    # after which the dwell restarts. The daemon's tilt link reports a lost or silent sensor
+    # sooner (4 unanswered requests, ≈ 45 ms: tilt_sensor.stale_after_s); this is the backstop
+    timeout_s: float = setting(0.1, 0.015, 1.0)
     forward_mode: Literal["hold", "latch"] = "hold"  # latch: forward holds until stop/turn
     forward_fraction: float = setting(0.6, 0.05, 1.0)  # of the maximum speed
     turn_fraction: float = setting(0.4, 0.05, 1.0)  # of the maximum turn rate

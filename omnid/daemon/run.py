@@ -59,6 +59,7 @@ import math
 import os
 import signal
 import time
+from collections import deque
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -73,6 +74,10 @@ from omnid.devices.control_unit import ControlUnitLink
 from omnid.logs import LogThrottle
 
 log = logging.getLogger(__name__)
+
+#: A cloud is entered into the map only when the next control cycle is at least this far off
+#: (an update takes ~1–4 ms); otherwise right after that cycle (s).
+ENTER_MARGIN_S = 0.006
 
 
 #: failed cycles in a row after which the daemon gives up (zero, exit 70: systemd restarts it)
@@ -116,12 +121,17 @@ class LoopStats:
     skipped: int = 0
     failed_cycles: int = 0
     lateness_s: Samples = field(default_factory=Samples)
-    perception_cycles: int = 0
+    perception_cycles: int = 0  # clouds entered into the map
     perception_errors: int = 0
     perception_s: Samples = field(default_factory=Samples)  # perceive in the worker, wall
     perception_latency_s: Samples = field(default_factory=Samples)  # base frame → in the map
-    capture_s: Samples = field(default_factory=Samples)  # laser off → base pair in hand
+    capture_s: Samples = field(default_factory=Samples)  # cycle start (stream: mask) → job
     mask_to_base_s: Samples = field(default_factory=Samples)  # mask pair → base pair
+    frames_read: int = 0  # frame pairs the camera delivered
+    jobs_superseded: int = 0  # jobs dropped for newer ones before the worker took them
+    masks_taken: int = 0
+    perception_first_s: float | None = None  # monotonic time of the first and the last cloud
+    perception_last_s: float | None = None
 
     def record(self, late_s: float) -> None:
         self.cycles += 1
@@ -197,9 +207,17 @@ class Daemon:
         self._link_was_ok: bool | None = None  # None: not yet heard (start-up is not a loss)
         self._reload_task: asyncio.Task[bool] | None = None
         self.capture_cycle = CaptureCycle(
-            CaptureSettings.from_config(holder.config.perception), start_s=time.monotonic()
+            CaptureSettings.from_config(holder.config), start_s=time.monotonic()
         )
-        self._capture_wake = asyncio.Event()  # a laser report arrived
+        self._capture_wake = asyncio.Event()  # a laser report or a frame arrived
+        self._frames_wanted = asyncio.Event()  # the cycle wants frames: the reader reads
+        # the capture jobs the worker takes next, oldest first (a mask completes up to
+        # mask_every_frames − 1 at once; beyond that the oldest is dropped)
+        self._jobs: deque[Any] = deque()
+        self._job_ready = asyncio.Event()
+        self._camera_reset = False  # the cycle gave up on the camera: reopen it
+        self._next_grid_s = time.monotonic()  # the control loop's next grid deadline
+        self._cycle_done = asyncio.Event()  # set after every grid cycle
         self._throttle = LogThrottle(log, interval_s=5.0)
         self.exit_code = 0
         self._failed_in_a_row = 0
@@ -216,7 +234,7 @@ class Daemon:
     # ---- inputs -------------------------------------------------------------------------
     def _on_status(self, status: Any) -> None:
         self.core.on_status(status)
-        self.capture_cycle.on_laser_report(bool(status.laser_on), float(status.timestamp_s))
+        self.capture_cycle.on_status(status)
         self._capture_wake.set()
 
     def _on_tilt(self, reading: Any) -> None:
@@ -374,12 +392,8 @@ class Daemon:
 
     def _loop_healthy(self, now: float, cycle_ok: bool, late_s: float) -> bool:
         """What WATCHDOG=1 vouches for: this cycle succeeded, on time, and the link task runs."""
-        link_task = self.link._task
         return (
-            cycle_ok
-            and late_s <= self.config.control_unit.max_command_age_s
-            and link_task is not None
-            and not link_task.done()
+            cycle_ok and late_s <= self.config.control_unit.max_command_age_s and self.link.running
         )
 
     def _inject(self, what: str) -> None:
@@ -440,6 +454,8 @@ class Daemon:
             self.stats.record(late)
             ok = self._guarded_cycle(now)
             self._last_cycle_s = now
+            self._next_grid_s = t0 + (k + 1) * period  # perception enters clouds in the gaps
+            self._cycle_done.set()
             if wd is not None and now >= next_watchdog and self._loop_healthy(now, ok, late):
                 self.notifier.watchdog()
                 next_watchdog = now + wd / 2
@@ -465,7 +481,8 @@ class Daemon:
     async def _read(self, camera: Any) -> Frame:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
-        return Frame(frame_time(float(t_cam), t_req, time.monotonic()), (img1, img2))
+        t = frame_time(float(t_cam), t_req, time.monotonic())
+        return Frame(t - self.config.camera.frame_latency_s, (img1, img2))
 
     def _perception_error(self, what: str, exc: BaseException | str) -> None:
         self.stats.perception_errors += 1
@@ -487,24 +504,24 @@ class Daemon:
         self.core.laser_on = cycle.laser_on
         self.core.capturing = cycle.capturing
 
-    async def _capture_wait(self, until_s: float) -> None:
-        """Sleep until ``until_s``, a laser report or a stop request, whichever comes first."""
-        rest = until_s - time.monotonic()
-        if rest <= 0.0:
+    async def _wait_any(self, events: list[asyncio.Event], timeout_s: float) -> None:
+        """Until one of ``events`` (or a stop request) is set, at most ``timeout_s``."""
+        if timeout_s <= 0.0:
             return
-        self._capture_wake.clear()
-        waits = [asyncio.ensure_future(e.wait()) for e in (self._capture_wake, self._stop)]
+        waits = [asyncio.ensure_future(e.wait()) for e in (*events, self._stop)]
         try:
-            await asyncio.wait(waits, timeout=min(rest, 1.0), return_when=asyncio.FIRST_COMPLETED)
+            await asyncio.wait(waits, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
         finally:
             for w in waits:
                 w.cancel()
 
     async def perception_loop(self) -> None:
+        """The capture cycle's driver: it polls the cycle when a reply, a frame or one of the
+        cycle's own deadlines comes, puts its laser request on the wire at once (an extra
+        control cycle, as for a rider's command), and hands its jobs to the perceiver. Frames
+        are read by :meth:`_frame_reader`, jobs perceived by :meth:`_perceiver` (both tasks)."""
         from omnid.daemon.capture import pipeline_arguments
-        from omnid.daemon.perception_worker import PerceptionFailed, PerceptionWorker
-        from omnid.devices.camera import open_camera
-        from omnid.errors import DeviceError
+        from omnid.daemon.perception_worker import PerceptionWorker
 
         cfg = self.config
         p = cfg.perception
@@ -515,73 +532,151 @@ class Daemon:
             settings,
             timeout_s=p.worker_timeout_s,
             nice=p.worker_nice,
+            rig_x_offset_mm=p.rig_x_offset_mm,
         )
         self._closers.append(self.worker.close)
         await self.worker.start()
-        cycle = self.capture_cycle
+        # the cycle starts now: its first laser request is the one the core has been sending
+        cycle = self.capture_cycle = CaptureCycle(
+            CaptureSettings.from_config(cfg), start_s=time.monotonic()
+        )
+        helpers = [
+            asyncio.create_task(self._frame_reader(cycle), name="frames"),
+            asyncio.create_task(self._perceiver(), name="perceive"),
+        ]
+        try:
+            while not self._stop.is_set():
+                self._capture_wake.clear()
+                try:
+                    before = cycle.laser_on
+                    for out in cycle.poll(time.monotonic()):
+                        if isinstance(out, CaptureFailure):
+                            self._perception_error(out.kind, out.message)
+                            self._camera_reset |= out.kind == "camera"
+                            continue
+                        self._jobs.append(out)
+                        while len(self._jobs) > max(1, cycle.settings.mask_every_frames - 1):
+                            self._jobs.popleft()
+                            self.stats.jobs_superseded += 1
+                        self._job_ready.set()
+                    self._apply_capture()
+                    if cycle.laser_on != before and cycle.settings.policy == "stream":
+                        self._kick()  # timed to the frames: the laser bit goes out now
+                    if cycle.wants_frame():
+                        self._frames_wanted.set()
+                except Exception as exc:  # a bug here must not end perception for good
+                    self._perception_error("internal", exc)
+                    log.debug("perception cycle exception", exc_info=True)
+                rest = min(cycle.next_poll_s - time.monotonic(), 0.1)
+                await self._wait_any([self._capture_wake], max(rest, 0.0005))
+        finally:
+            for t in helpers:
+                t.cancel()
+            for t in helpers:
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await t
+            self.stats.masks_taken = cycle.masks_taken
+
+    async def _frame_reader(self, cycle: CaptureCycle) -> None:
+        """Read frame pairs while the cycle wants them (flushing the queue first where it
+        asks); a camera that raises is closed and opened again (after 0.05 … 1 s)."""
+        from omnid.devices.camera import open_camera
+        from omnid.errors import DeviceError
+
         camera: Any = None
-
-        async def close_camera() -> None:
-            nonlocal camera
-            if camera is not None:
-                with contextlib.suppress(Exception):
-                    await camera.close()
-                camera = None
-
-        while not self._stop.is_set():
-            try:
-                for out in cycle.poll(time.monotonic()):
-                    if isinstance(out, CaptureFailure):
-                        self._perception_error(out.kind, out.message)
-                        if out.kind == "camera":
-                            await close_camera()
-                        continue
-                    self.stats.note(self.stats.capture_s, time.monotonic() - out.started_s)
-                    if out.masks:
-                        self.stats.note(self.stats.mask_to_base_s, out.t_s - out.masks[0].t_s)
-                    cap = out.stereo_capture()
-                    if self.recording is not None:
-                        self.recording.on_capture(cap)  # rate-limited, encoded off the loop
-                    w0 = time.monotonic()
-                    cloud = await self.worker.perceive(cap)
-                    t_done = time.monotonic()
-                    self.core.on_perception(cloud, out.t_s)
-                    self.stats.note(self.stats.perception_s, t_done - w0)
-                    self.stats.note(self.stats.perception_latency_s, time.monotonic() - out.t_s)
-                    self.stats.perception_cycles += 1
-                    if self.stats.perception_errors and self.stats.perception_cycles == 1:
-                        log.info("perception running (%d dots)", len(cloud))
-                self._apply_capture()
+        flushed = -1
+        backoff = 0.05
+        try:
+            while not self._stop.is_set():
                 if not cycle.wants_frame():
-                    await self._capture_wait(cycle.next_poll_s)
+                    self._camera_wait_s = None  # none awaited: the cameras are not silent
+                    self._frames_wanted.clear()
+                    await self._wait_any([self._frames_wanted], 0.1)
                     continue
                 try:
                     if self._camera_wait_s is None:
                         self._camera_wait_s = time.monotonic()  # camera health: awaited since
+                    if self._camera_reset and camera is not None:
+                        await camera.close()
+                        camera = None
+                    self._camera_reset = False
                     if camera is None:
-                        camera = open_camera(cfg.camera)
-                    if cycle.flush_needed:
+                        camera = open_camera(self.config.camera)
+                    if cycle.flush_needed and flushed != cycle.frame_requests:
                         await camera.flush()
-                    rest = max(cycle.frame_deadline_s - time.monotonic(), 0.001)
-                    cycle.on_frame(await asyncio.wait_for(self._read(camera), rest))
+                        flushed = cycle.frame_requests
+                    frame = await self._read(camera)
                     self._camera_wait_s, self._camera_failed = None, False
-                except TimeoutError as exc:
-                    self._camera_failed = True
-                    if isinstance(exc, DeviceError):
-                        cycle.frame_failed(str(exc))
-                    # else: past the cycle's frame deadline; its next poll says so
+                    backoff = 0.05
                 except (DeviceError, OSError) as exc:
                     self._camera_failed = True
                     cycle.frame_failed(f"{type(exc).__name__}: {exc}")
+                    self._capture_wake.set()
+                    if camera is not None:
+                        with contextlib.suppress(Exception):
+                            await camera.close()
+                        camera = None
+                    await self._wait_any([], backoff)
+                    backoff = min(2 * backoff, 1.0)
+                    continue
+                self.stats.frames_read += 1
+                cycle.on_frame(frame)
+                self._capture_wake.set()
+        finally:
+            if camera is not None:
+                with contextlib.suppress(Exception):
+                    await camera.close()
+
+    async def _perceiver(self) -> None:
+        """Perceive the newest job in the worker, then enter the cloud into the map — in a gap
+        between control cycles, so that the map update never makes a cycle late."""
+        from omnid.daemon.perception_worker import PerceptionFailed
+
+        p = self.config.perception
+        while not self._stop.is_set():
+            if not self._jobs:
+                self._job_ready.clear()
+                await self._wait_any([self._job_ready], 1.0)
+                continue
+            job = self._jobs.popleft()
+            try:
+                self.stats.note(self.stats.capture_s, time.monotonic() - job.started_s)
+                if job.masks:
+                    self.stats.note(self.stats.mask_to_base_s, job.t_s - job.masks[0].t_s)
+                if self.recording is not None:
+                    self.recording.on_capture(job.stereo_capture())  # rate-limited
+                motions = job.mask_motions if p.motion_compensation else ()
+                motions = tuple(motions) or (None,) * len(job.masks)
+                w0 = time.monotonic()
+                cloud = await self.worker.perceive_job(
+                    job.t_s,
+                    job.base.images,
+                    [m.images for m in job.masks],
+                    motions,
+                )
+                t_done = time.monotonic()
             except PerceptionFailed as exc:
                 self._perception_error("worker", exc)
-            except asyncio.CancelledError:
-                raise
-            except Exception as exc:  # a bug here must not end perception for good
+                continue
+            except Exception as exc:
                 self._perception_error("internal", exc)
-                log.debug("perception cycle exception", exc_info=True)
-                await self._capture_wait(time.monotonic() + 0.01)
-        await close_camera()
+                log.debug("perceiver exception", exc_info=True)
+                continue
+            # a map update takes milliseconds: not just before a control cycle is due
+            if self._next_grid_s - time.monotonic() < ENTER_MARGIN_S:
+                self._cycle_done.clear()
+                await self._wait_any([self._cycle_done], 2 * self.config.control.period_s)
+            self.core.on_perception(cloud, job.t_s)
+            now = time.monotonic()
+            st = self.stats
+            st.note(st.perception_s, t_done - w0)
+            st.note(st.perception_latency_s, now - job.t_s)
+            st.perception_cycles += 1
+            st.perception_last_s = now
+            if st.perception_first_s is None:
+                st.perception_first_s = now
+            if st.perception_errors and st.perception_cycles == 1:
+                log.info("perception running (%d dots)", len(cloud))
 
     # ---- life cycle ---------------------------------------------------------------------
     def _on_sighup(self) -> None:

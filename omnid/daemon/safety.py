@@ -96,6 +96,8 @@ class SafetySettings(Settings):
     unknown_distance_mm: float = setting(1000.0, 0.0, 10000.0)
     unknown_max_fraction: float = setting(0.3, 0.0, 1.0)
     unknown_speed_mm_s: float = setting(120.0, 10.0, 1000.0)
+    # perception older than this → no forward motion; the stationary capture needs its period
+    # + ~0.2 s; with perception.capture: stream (a cloud every ~50 ms) 0.3 s is enough
     perception_timeout_s: float = setting(1.5, 0.05, 5.0)
     # and no forward motion after this much travel since the newest perception's capture
     perception_max_travel_mm: float = setting(250.0, 10.0, 5000.0)

@@ -477,10 +477,10 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         crc_before = self._parser.crc_errors + self._parser.malformed
         got = False
         while not got:
+            # at the deadline still take what is already buffered: a reply that came in time
+            # while this task waited for the event loop is not a missed one
             remaining = deadline - loop.time()
-            if remaining <= 0:
-                break
-            data = await t.read_some(256, remaining)
+            data = await t.read_some(256, max(remaining, 0.0))
             if not data:
                 break
             for rep in self._parser.feed(data):

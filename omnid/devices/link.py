@@ -138,6 +138,11 @@ class PolledLink(Generic[H]):
         self._health.connected = False
         self._on_stopped()
 
+    @property
+    def running(self) -> bool:
+        """The link's task exists and has not ended (what the daemon's watchdog vouches for)."""
+        return self._task is not None and not self._task.done()
+
     # -- hooks for the links -------------------------------------------------------------
     def _on_open(self) -> None:
         """Called after the port opened (reset parsers)."""

@@ -6,10 +6,11 @@ command ``0x50 0x50`` and waits at most ``request_timeout_s`` for the ``0xA0`` r
 (:mod:`omnid.devices.gs311_codec`, whose docstring documents the assumed data layout).
 
 Fail safe: :attr:`TiltSensorLink.latest` is the newest reading only while it is younger than
-``stale_after_s``; otherwise it is ``None`` (logged, rate-limited) and the daemon treats the
-rider's head input as lost: zero at once. ``on_lost`` (optional) is called the moment a valid
-reading goes stale or the port is lost, so the daemon runs a control cycle then instead of at
-its next period. When the adapter disappears (USB unplugged: EIO/EOF) the port is
+``stale_after_s``; otherwise it is ``None``. ``on_lost`` (optional) is called the moment the
+port is lost, or the sensor has left as many requests in a row unanswered as fit in
+``stale_after_s`` (4 at 10 ms: silent, or sending garbage), logged (rate-limited): the daemon
+treats the rider's head input as lost — zero at once, a control cycle run then. Requests the
+link did not send (the event loop stalled) are not held against the sensor. When the adapter disappears (USB unplugged: EIO/EOF) the port is
 closed and reopened with exponential back-off (``reconnect_initial_s`` doubling up to
 ``reconnect_max_s``); counters in :attr:`TiltSensorLink.health` record every outcome.
 
@@ -227,12 +228,21 @@ class TiltSensorLink(PolledLink[TiltHealth]):
     def latest(self) -> TiltReading | None:
         """The newest reading if younger than ``stale_after_s``, else ``None`` (rider input = stop)."""
         r = self._reading
-        if r is None:
-            return None
-        if self._clock() - r.timestamp_s > self.settings.stale_after_s:
-            self._note_stale()
+        if r is None or self._clock() - r.timestamp_s > self.settings.stale_after_s:
             return None
         return r
+
+    @property
+    def _sensor_lost(self) -> bool:
+        """The sensor stopped answering: as many requests in a row unanswered as fit in
+        ``stale_after_s`` (a stalled event loop sends no requests, so it is not the sensor's
+        fault), or no reading for three times that (the link task itself stuck)."""
+        r = self._reading
+        if r is None:
+            return False
+        if self._health.consecutive_timeouts >= self._silent_limit:
+            return True
+        return self._clock() - r.timestamp_s > 3 * self.settings.stale_after_s
 
     @property
     def last_reading(self) -> TiltReading | None:
@@ -281,7 +291,8 @@ class TiltSensorLink(PolledLink[TiltHealth]):
         self._parser.reset()
 
     def _check_stale(self) -> None:
-        self.latest  # noqa: B018 - logs the stale transition even if nobody asks
+        if self._sensor_lost:
+            self._note_stale()  # logs the transition and tells on_lost, even if nobody asks
 
     def _on_stopped(self) -> None:
         self._reading = None
@@ -298,8 +309,10 @@ class TiltSensorLink(PolledLink[TiltHealth]):
         h.requests += 1
         deadline = loop.time() + self.settings.request_timeout_s
         while True:
+            # at the deadline still take what is already buffered (a reply in time while this
+            # task waited for the event loop)
             remaining = deadline - loop.time()
-            data = await t.read_some(64, remaining) if remaining > 0 else b""
+            data = await t.read_some(64, max(remaining, 0.0))
             if not data:
                 break
             frames = self._parser.feed(data)

@@ -173,3 +173,20 @@ def test_packing_solvers_are_exact_on_random_small_components() -> None:
         assert exact and w[sel].sum() == pytest.approx(want)
         sel2, _ = _solve_milp(nodes, w)
         assert w[sel2].sum() == pytest.approx(want)
+
+
+def test_floor_only_calibration_reads_the_floor_and_invents_nothing_over_random_rigs() -> None:
+    """Calibrated on the floor alone (source unknown), over 10 random rigs: the floor is read
+    as with extras, and off the floor a dot is either read from a source the capture itself
+    places or left out (not understood) — never a wrong pair."""
+    scores: list[ev.Score] = []
+    for r in range(N_RIGS):
+        case = ev.rig_case(r, seed=2)
+        calib = ev.calibrate_case(case, seed=2, floor_only=True)
+        assert not calib.laser.source_known  # type: ignore[attr-defined]
+        scores.extend(ev.evaluate_case(case, calib, ("floor", "boxes"), (0,)))
+    floor = [s for s in scores if s.scene == "floor"]
+    assert ev.pooled(floor)["recall"] >= 0.97
+    pooled = ev.pooled(scores)
+    assert pooled["wrong"] <= 0.002 and pooled["class"] >= 0.99
+    assert ev.summarise(scores)["all"]["wrong"][1] <= 0.005  # worst decile of rigs

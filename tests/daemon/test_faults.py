@@ -8,7 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from daemon_helpers import RecordingMap, Status, Tilt
+from daemon_helpers import RecordingMap, Status, Tilt, arm
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -48,7 +48,9 @@ def make_core(**safety) -> ControlCore:
     )
     m = RecordingMap(cfg.freespace.grid)
     m.states[:] = 1  # free everywhere
-    return ControlCore(cfg, world_map=m)
+    core = ControlCore(cfg, world_map=m)
+    arm(core)
+    return core
 
 
 class Run:
@@ -110,7 +112,9 @@ def test_unit_and_tilt_lost_together_stay_stopped_until_the_tilt_is_released():
     assert moving(r.cycles(1.0)[-1])
     r.tilt = r.unit = False
     lost = r.cycles(1.0)
-    assert not any(moving(c) for c in lost[3:])  # zero once the tilt's 40 ms timeout passed
+    # zero once the mux's 100 ms backstop passed (the daemon's tilt link says it sooner)
+    first = round(r.core.config.rider.tilt.timeout_s / DT) + 1
+    assert not any(moving(c) for c in lost[first:])
     r.unit = True  # the unit is back first; the tilt port still closed
     assert not any(moving(c) for c in r.cycles(0.5))
     r.tilt = True  # the tilt too, the head still tilted
@@ -221,3 +225,26 @@ def test_rearm_follows_the_source_that_was_driving():
         held.append(moving(core.step(t)))
     assert not any(held)
     assert core.arming.driver == "keyboard"
+
+
+def test_a_head_tilted_when_the_daemon_starts_drives_only_after_a_rest():
+    """A restarted daemon (systemd restarts one whose loop died) with the rider's head still
+    tilted: nothing moves until the head has been seen at rest."""
+    d = OmnidConfig()
+    cfg = replace(
+        d,
+        rider=RiderSettings(
+            tilt=TiltSettings(dwell_s=0.1, neutral_calibration_s=0.0),
+            joystick=JoystickSettings(enabled=False),
+        ),
+    )
+    m = RecordingMap(cfg.freespace.grid)
+    m.states[:] = 1
+    r = Run(ControlCore(cfg, world_map=m))  # not armed: the first reading is already tilted
+    r.head = FORWARD
+    assert not any(moving(c) for c in r.cycles(1.5))
+    assert r.core.last_report.demand.reason == "rearm_wait"
+    r.head = NEUTRAL
+    r.cycles(0.1)
+    r.head = FORWARD
+    assert moving(r.cycles(0.6)[-1])

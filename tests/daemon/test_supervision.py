@@ -118,6 +118,18 @@ def test_supervised_loop_zero_on_exception_stall_and_death(tmp_path: Path) -> No
         keys.key = "left"
         assert wait_for(lambda: turning(emu), 5.0)
 
+        # the unit falls silent: the link declares it unhealthy and sends zero at once
+        t2 = time.monotonic()
+        emu.stall()
+        assert wait_for(lambda: (spy.first_zero_after(t2) or 1e9) - t2 < 1.0, 2.0)
+        emu.recover()
+        time.sleep(0.5)
+        assert not turning(emu)  # a fault: the held key restarts nothing
+        keys.key = None
+        time.sleep(0.8)
+        keys.key = "left"
+        assert wait_for(lambda: turning(emu), 5.0)
+
         # the whole event loop stalls: the first frame after it is zero
         proc.send_signal(signal.SIGRTMIN)
         assert wait_for(lambda: emu.watchdog_trips >= 1, 5.0)

@@ -598,3 +598,24 @@ def test_after_an_event_loop_stall_the_first_frame_is_zero(emu: ControlUnitEmula
             await link.stop()
 
     asyncio.run(main())
+
+
+def test_a_restarted_master_counting_from_zero_again_is_not_a_replay():
+    now = [0.0]
+    emu = ControlUnitEmulator(clock=lambda: now[0])
+
+    def send(cycle: int, enable: bool = True) -> codec.ReplyFrame:
+        cmd = WheelCommand(0.5, 0.5, enable=enable)
+        rep = codec.decode_frame(
+            emu.handle_bytes(codec.encode_command(cmd.to_frame(1, 250, cycle)))
+        )
+        assert isinstance(rep, codec.ReplyFrame)
+        return rep
+
+    send(900, enable=False)
+    assert send(901).left_applied_pm == 500
+    now[0] = 0.5  # the master died (watchdog), systemd restarted it: its cycles start again
+    send(1, enable=False)
+    now[0] = 0.52
+    assert send(2).left_applied_pm == 500
+    assert send(0).left_applied_pm == 0  # a frame older than the stop is still a replay

@@ -25,8 +25,10 @@ import contextlib
 import logging
 import math
 import os
+import random
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
@@ -97,6 +99,8 @@ class ControlUnitEmulator:
         Monotonic time source, s (the simulator may pass its own).
     laser_delay_s:
         Relay switching delay; the reply reports the relay, not the request.
+    laser_jitter_s:
+        Each switch takes a further uniform 0…``laser_jitter_s`` (drawn from ``seed``).
     default_watchdog_s:
         Watchdog used when a command says ``WATCHDOG_MS = 0``.
     clock_offset:
@@ -109,6 +113,8 @@ class ControlUnitEmulator:
         *,
         clock: Callable[[], float] = time.monotonic,
         laser_delay_s: float = 0.02,
+        laser_jitter_s: float = 0.0,
+        seed: int = 0,
         default_watchdog_s: float = 0.25,
         clock_offset: int = 0,
         name: str = "cu-emulator",
@@ -116,6 +122,11 @@ class ControlUnitEmulator:
         self.plant: Plant = plant if plant is not None else MotorPlant()
         self._clock = clock
         self.laser_delay_s = laser_delay_s
+        self.laser_jitter_s = laser_jitter_s
+        self._laser_rng = random.Random(seed)
+        self._laser_delay_now = laser_delay_s
+        #: (t_s, on): when the relay actually switched (for the simulator's exposure model)
+        self.laser_switches: deque[tuple[float, bool]] = deque(maxlen=256)
         self.default_watchdog_s = default_watchdog_s
         self.clock_offset = clock_offset
         self.name = name
@@ -163,9 +174,12 @@ class ControlUnitEmulator:
         self._integrate(now)
         if (
             self._laser_on != self._laser_request
-            and now - self._laser_change_t >= self.laser_delay_s
+            and now - self._laser_change_t >= self._laser_delay_now
         ):
             self._laser_on = self._laser_request
+            self.laser_switches.append(
+                (self._laser_change_t + self._laser_delay_now, self._laser_on)
+            )
 
     def _integrate(self, until: float) -> None:
         dt = until - self._t
@@ -182,6 +196,7 @@ class ControlUnitEmulator:
         if self._laser_request:
             self._laser_request = False
             self._laser_change_t = at
+            self._laser_delay_now = self.laser_delay_s
         self._latched |= codec.FAULT_WATCHDOG
         self._armed = False
         self.watchdog_trips += 1
@@ -242,7 +257,11 @@ class ControlUnitEmulator:
                 self._throttle.warning("stale", "%s: command refused: %s", self.name, why)
         else:
             self._armed = True
-        if self._cycle is None or codec.cycle_ahead(self._cycle, cmd.cycle) > 0:
+        if not cmd.enabled:
+            # a stop re-arms and re-synchronises: a restarted master counts from its own cycle
+            if self._cycle != cmd.cycle:
+                self._cycle, self._cycle_since = cmd.cycle, now
+        elif self._cycle is None or codec.cycle_ahead(self._cycle, cmd.cycle) > 0:
             self._cycle, self._cycle_since = cmd.cycle, now
         self._enabled = drive
         self._duty = (cmd.left_duty, cmd.right_duty) if self._enabled else (0.0, 0.0)
@@ -250,6 +269,8 @@ class ControlUnitEmulator:
         if want_laser != self._laser_request:
             self._laser_request = want_laser
             self._laser_change_t = now
+            jitter = self._laser_rng.uniform(0.0, self.laser_jitter_s) if self.laser_jitter_s else 0
+            self._laser_delay_now = self.laser_delay_s + jitter
         if self._drop:
             self._drop -= 1 if self._drop > 0 else 0
             return b""
