@@ -613,6 +613,10 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
     # frames do not share (motion, a changed scene, frames of different cameras) adds clutter.
     spread = max(noise / 3.5, _clutter(small, bg_half, mask_gray))
     threshold = max(p.best_min_peak_gray, p.best_snr * spread)
+    # The laser only adds light: a background below zero is the scene's change (a moved
+    # mask's edge, something gone), not a floor to measure dots from — above it its own edge
+    # would stand out like a row of dots.
+    np.maximum(bg_half, 0.0, out=bg_half)
     if min(h_img, w_img) < _MIN_PYRAMID_PX:
         r0, r1, c0, c1 = 0, h_img, 0, w_img
     else:
