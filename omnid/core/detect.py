@@ -344,13 +344,13 @@ def _clutter(small: NDArray[np.float32], bg_half: NDArray[np.float32], mask_gray
 
     Measured at half resolution (``small`` = pyrDown of the subtracted image, whose 5x5 kernel
     divides white noise by 128/35 = 3.66, about what the σ = 1 px smoothing of the
-    candidates does: 3.5), on every 4th row, where the mask frame sees the scene (not the dark
+    candidates does: 3.5), on every 8th row, where the mask frame sees the scene (not the dark
     housing, which holds no noise), from the lower half of the values only — the dots stand
     above the background, never below it: (median − 25th percentile) / 0.6745. 0 with too
     few samples.
     """
-    lit = mask_gray[::8, ::2][: (small.shape[0] + 3) // 4, : small.shape[1]] >= _HOUSING_GRAY
-    res = (small[::4] - bg_half[::4])[: lit.shape[0], : lit.shape[1]][lit]
+    lit = mask_gray[::16, ::2][: (small.shape[0] + 7) // 8, : small.shape[1]] >= _HOUSING_GRAY
+    res = (small[::8] - bg_half[::8])[: lit.shape[0], : lit.shape[1]][lit]
     if res.size < 64:
         return 0.0
     k25, k50 = res.size // 4, res.size // 2
@@ -641,10 +641,12 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
     # A top within 1 px of a clipped pixel of the base frame is flattened by the sensor, by
     # the laser if the scene itself (the mask frame) was not clipped there.
     saturated = _saturated(base, p.bgr_weights, (r0, r1, c0, c1))
-    clipped = np.zeros(len(rows), dtype=bool)
+    clipped: NDArray[np.bool_] = np.zeros(len(rows), dtype=bool)
     if saturated is not None:
-        clipped = _clipped_near(base, p.bgr_weights, rows + r0, cols + c0)
-        clipped &= ~_clipped_near(mask, p.bgr_weights, rows + r0, cols + c0)
+        around = np.lib.stride_tricks.sliding_window_view(np.pad(saturated, 1), (3, 3))
+        clipped = np.asarray(around[rows, cols].reshape(len(rows), 9).any(axis=1))
+        k = np.flatnonzero(clipped)
+        clipped[k] = ~_clipped_near(mask, p.bgr_weights, rows[k] + r0, cols[k] + c0)
     # The blur is measured where the sensor did not clip; where it clipped (nearly) every dot,
     # by the censored fit of the brightest of them.
     if np.count_nonzero(~clipped) >= _MIN_UNCLIPPED:
