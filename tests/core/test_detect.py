@@ -217,3 +217,42 @@ def test_lone_dim_dots_far_from_the_pattern_and_near_the_image_edge_are_found():
     assert found.shape == (5, 3)
     d = np.hypot(found[:, None, 0] - truth[None, :, 0], found[:, None, 1] - truth[None, :, 1])
     assert d.min(axis=0).max() < 0.3  # every dot found, each within 0.3 px (noise σ = 2)
+
+
+def test_a_changed_scene_is_no_laser():
+    # mask2 used as base1: the frames of two cameras differ everywhere (~700 "dots" before the
+    # threshold followed the clutter); base1 minus mask1 is the real laser
+    from omnid.sim.installation import installation_captures
+
+    cap = installation_captures(RIG, seed=3)[0]
+    assert len(detect_dots(cap.mask1, cap.mask2)) < 5
+    assert len(detect_dots(cap.mask2, cap.mask1)) < 5
+    assert len(detect_dots(cap.mask1, cap.base1)) > 150
+
+
+@pytest.mark.parametrize("move_mm", [5.0, 20.0])
+def test_a_motion_compensated_mask_leaves_no_row_of_dots_along_the_rim(move_mm):
+    # the chair moved between mask and base; the mask is moved to the base's pose (the floor's
+    # image motion) and its rim edge no longer cancels: the background must not follow it down
+    from omnid.daemon.perception_worker import job_capture
+    from omnid.sim.camera import CameraModel, SimCamera, SimFrame
+    from omnid.sim.laser import LaserProjector
+    from omnid.sim.rigs import misaligned_rig
+    from omnid.sim.scenes import get_scene
+    from omnid.sim.world import RigMount, cast_laser
+
+    mount = RigMount()
+    rig = misaligned_rig(mount.height_mm)
+    scene = get_scene("floor")
+    camera = SimCamera(CameraModel(), rig, mount, scene.world, (-3000, 3000, -3000, 3000), seed=0)
+    hits = cast_laser(scene.world, (0.0, 0.0, 0.0), mount, LaserProjector(), rig)
+    mask = camera.render(SimFrame(1, 0.0, (-move_mm, 0.0, 0.0), 0.0, 1), hits)
+    base = camera.render(SimFrame(2, 0.1, (0.0, 0.0, 0.0), 1.0, 2), hits)
+    cap = job_capture(base, [mask], [(move_mm, 0.0, 0.0)], rig, mount.x_offset_mm)
+    truth = hits.pixels[hits.visible1][:, :2]
+    truth = truth[rig.cam1.in_disk(truth, EDGE_MARGIN_PX)]
+    found = detect_dots(cap.mask1, cap.base1)
+    found = found[rig.cam1.in_disk(found[:, :2], EDGE_MARGIN_PX)]
+    d = np.hypot(found[:, None, 0] - truth[None, :, 0], found[:, None, 1] - truth[None, :, 1])
+    assert (d.min(axis=0) < 1.5).mean() >= 0.99
+    assert (d.min(axis=1) >= 1.5).sum() <= 3
