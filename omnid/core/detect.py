@@ -672,7 +672,7 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
             far = _ring_contrast(sm, rows[flat], cols[flat], centre[flat], math.sqrt(spread2))
             compact[flat[far >= _FAR_CONTRAST]] = True
         ok &= compact
-    rows, cols, centre, r, c, clipped = rows[ok], cols[ok], centre[ok], r[ok], c[ok], clipped[ok]
+    rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
     if p.best_relative_peak > 0 and len(rows):
         rad = max(p.best_relative_radius_px, round(1.6 * math.sqrt(spread2)))
         disk = _disk(rad)
@@ -683,14 +683,7 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
             off = 0
         near = np.lib.stride_tricks.sliding_window_view(src, disk.shape)[rows - off, cols - off]
         ok = centre >= p.best_relative_peak * near[:, disk].max(axis=1)
-        rows, cols, centre, r, c, clipped = (
-            rows[ok],
-            cols[ok],
-            centre[ok],
-            r[ok],
-            c[ok],
-            clipped[ok],
-        )
+        rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
     # Wide or clipped tops can hold several maxima of the 1 px smoothing: one spot. (The
     # maxima on a clipped top are all next to its clipped pixels.)
     some = np.arange(len(rows)) if sigma > _MATCHED_FROM_PX else np.flatnonzero(clipped)
@@ -698,14 +691,7 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
         reach = math.ceil(_SADDLE_REACH * math.sqrt(spread2))
         ok = np.ones(len(rows), dtype=bool)
         ok[some] = _one_spot(sm, r[some], c[some], centre[some], reach)
-        rows, cols, centre, r, c, clipped = (
-            rows[ok],
-            cols[ok],
-            centre[ok],
-            r[ok],
-            c[ok],
-            clipped[ok],
-        )
+        rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
     if len(rows) == 0:
         return _empty()
     # Dots the mirror's rim cuts (the housing outside the mirror is dark in the mask frame) are
@@ -775,6 +761,29 @@ def _ring_contrast(
         axis=1,
     )
     return np.asarray(1.0 - np.median(ring, axis=1) / np.maximum(top, 1e-6), dtype=np.float64)
+
+
+_Candidates = tuple[
+    NDArray[np.intp],
+    NDArray[np.intp],
+    NDArray,
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.bool_],
+]
+
+
+def _take(
+    ok: NDArray[np.bool_],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    centre: NDArray,
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    clipped: NDArray[np.bool_],
+) -> _Candidates:
+    """The candidates ``ok`` keeps: peak pixel, smoothed peak, sub-pixel centre, clipped."""
+    return rows[ok], cols[ok], centre[ok], r[ok], c[ok], clipped[ok]
 
 
 def _clipped_middle(
@@ -850,7 +859,7 @@ def _cut_by_rim(
 def _neighbour_pull(
     r: NDArray[np.float64],
     c: NDArray[np.float64],
-    top: NDArray[np.float32],
+    top: NDArray,
     filtered_var: float,
     shape: tuple[int, int],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
