@@ -18,13 +18,16 @@ Tasks:
   control-unit link's task runs.
 - perception (``perception.enabled``): the capture cycle :class:`~omnid.daemon.capture.CaptureCycle`
   (the same state machine the simulator drives) is told the laser state of every control-unit
-  reply and fed camera frames; it decides the laser bit of the next command and which frames
-  make a job (the thesis' cycle: laser off → reported off → flushed mask pair → laser on →
-  reported on → flushed base pair). Each job is perceived in a separate **worker process**
-  (:mod:`omnid.daemon.perception_worker`: no GIL shared with the control loop; exceptions,
-  crashes and hangs cost one cycle and restart the worker) → ``core.on_perception(cloud,
-  t_base)``. While frames are taken ``core.capturing`` caps the speed
-  (``perception.capture_policy: limit``); the cloud is placed by odometry anyway.
+  reply and fed camera frames (a reader task); it decides the laser bit of the next command and
+  which frames make a job: ``perception.capture: stationary`` the thesis' cycle (laser off →
+  reported off → flushed mask pair → laser on → reported on → flushed base pair; while frames
+  are taken ``core.capturing`` caps the speed, ``capture_policy: limit``), ``stream`` a job for
+  every laser-on frame, the laser switched in step with the frames (a change goes on the wire
+  at once: an extra control cycle) — docs/framerate.md. Each job is perceived in a separate
+  **worker process** (:mod:`omnid.daemon.perception_worker`: no GIL shared with the control
+  loop; the masks moved to the base's pose by the wheels' motion; exceptions, crashes and hangs
+  cost one job and restart the worker) → ``core.on_perception(cloud, t_base)``, entered in a
+  gap between control cycles; the cloud is placed by odometry at its capture time.
   A missing or invalid calibration file refuses the start (one line naming the file); with
   ``perception.enabled: false`` the daemon runs and refuses forward motion (no free space seen).
 - rider inputs: teleop keyboard socket; GS311 tilt sensor (:class:`TiltSensorLink`, readings

@@ -95,6 +95,7 @@ class SimFrame:
     pose: Pose  # the chair's pose at t_s
     lit: float  # share of the exposure with the laser lit, [0, 1]
     seed: int
+    world: int = 0  # the version of the world it was exposed in (worlds change: hazards)
 
     @property
     def laser(self) -> bool:
@@ -250,22 +251,29 @@ class SimCamera:
         self.options = render_options or RenderOptions()
         self.texture = SceneTexture(model, extent_mm, seed + 15485863)
         self._rays = (_CameraRays(rig.cam1, model.grid_px), _CameraRays(rig.cam2, model.grid_px))
+        self._geometry: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        self.world_version = 0
         self.set_world(world)
         self._fixed_scene: list[NDArray[np.float32] | None] = [None, None]
         self._next_index = 0
         self.frames = 0
         self.dropped = 0
 
-    def set_world(self, world: World) -> None:
-        """The world changed (a hazard appeared): later frames show the new one."""
-        self._boxes = np.array(
+    def set_world(self, world: World) -> int:
+        """The world changed (a hazard appeared): frames exposed from now on show the new one
+        (a frame keeps the version it was exposed in). Returns the new version."""
+        boxes = np.array(
             [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm, b.height_mm) for b in world.boxes],
             dtype=np.float64,
         ).reshape(-1, 5)
-        self._pits = np.array(
+        pits = np.array(
             [(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm, d.depth_mm) for d in world.dropoffs],
             dtype=np.float64,
         ).reshape(-1, 5)
+        self.world_version = len(self._geometry)
+        self._geometry.append((boxes, pits))
+        self._boxes, self._pits = boxes, pits
+        return self.world_version
 
     def exposure_mid_s(self, index: int) -> float:
         return self.phase_s + index * self.model.period_s
@@ -288,7 +296,7 @@ class SimCamera:
                 self.dropped += 1
                 continue
             lit = lit_share(t - m.exposure_s / 2, t + m.exposure_s / 2)
-            out.append(SimFrame(k, t, pose_at(t), lit, seed))
+            out.append(SimFrame(k, t, pose_at(t), lit, seed, self.world_version))
             self.frames += 1
         return out
 
@@ -297,20 +305,25 @@ class SimCamera:
         while self.exposure_mid_s(self._next_index) + self.model.readout_s <= now_s + 1e-9:
             self._next_index += 1
 
-    def scene(self, cam_index: int, pose: Pose) -> NDArray[np.float32]:
-        """The gray scene camera ``cam_index`` (0, 1) sees at ``pose``, without laser or noise
-        (``textured: camera``: the same whatever the pose)."""
+    def scene(self, cam_index: int, pose: Pose, world: int | None = None) -> NDArray[np.float32]:
+        """The gray scene camera ``cam_index`` (0, 1) sees at ``pose`` in world version
+        ``world`` (default: the latest), without laser or noise (``textured: camera``: the same
+        whatever the pose)."""
         if self.model.textured == "camera":
             fixed = self._fixed_scene[cam_index]
             if fixed is None:
-                fixed = self._world_scene(cam_index, (0.0, 0.0, 0.0), "floor")
+                fixed = self._world_scene(cam_index, (0.0, 0.0, 0.0), "floor", 0)
                 self._fixed_scene[cam_index] = fixed
             return fixed.copy()
-        return self._world_scene(cam_index, pose, self.model.textured)
+        version = self.world_version if world is None else world
+        return self._world_scene(cam_index, pose, self.model.textured, version)
 
-    def _world_scene(self, cam_index: int, pose: Pose, textured: str) -> NDArray[np.float32]:
+    def _world_scene(
+        self, cam_index: int, pose: Pose, textured: str, world: int
+    ) -> NDArray[np.float32]:
         rays = self._rays[cam_index]
-        x, y, h = rays.world_hits(pose, self.mount, self._boxes, self._pits)
+        boxes, pits = self._geometry[world]
+        x, y, h = rays.world_hits(pose, self.mount, boxes, pits)
         g = rays.grid_shape
         rows, cols = rays.shape
         u, v = self.texture.texel_coordinates(x, y, h)
@@ -338,7 +351,7 @@ class SimCamera:
         for i, (cam, vis) in enumerate(
             ((self.rig.cam1, hits.visible1), (self.rig.cam2, hits.visible2))
         ):
-            signal = self.scene(i, frame.pose)
+            signal = self.scene(i, frame.pose, frame.world)
             if frame.lit > 0 and np.any(vis):
                 xyz = hits.xyz[vis]
                 signal += laser_image(cam, cam.project(xyz), opts.spots, rng, flux_all[vis, i])

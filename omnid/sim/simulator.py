@@ -179,6 +179,7 @@ class Simulator:
             self.install()
         self._box_rects, self._drop_rects = world_rects(course.world)
         self.world_changes = sorted(world_changes, key=lambda c: c[0])
+        self._worlds: dict[int, World] = {0: course.world}  # by version (SimFrame.world)
         x0, x1 = course.x_range_mm
         y0, y1 = course.y_range_mm
         assert s.camera is not None
@@ -203,7 +204,7 @@ class Simulator:
         self._rendered: dict[int, tuple[NDArray[np.uint8], NDArray[np.uint8]]] = {}
         # Laser hits per pose: a chair standing still (refused, resting) sees the same dots, so
         # truth perception casts them once per pose; fresh noise is drawn on every use.
-        self._hits_cache: dict[tuple[float, float, float], Any] = {}
+        self._hits_cache: dict[tuple[float, ...], Any] = {}
 
     # -- installation -------------------------------------------------------------------------
 
@@ -222,13 +223,18 @@ class Simulator:
 
     # -- camera views -------------------------------------------------------------------------
 
-    def laser_hits(self, pose: tuple[float, float, float] | None = None) -> Any:
-        """``cast_laser`` at ``pose`` (default: the chair's current pose), remembered for the
-        last few distinct poses (cleared when the world changes)."""
-        key = pose or self.chair.pose
+    def laser_hits(
+        self, pose: tuple[float, float, float] | None = None, world: int | None = None
+    ) -> Any:
+        """``cast_laser`` at ``pose`` (default: the chair's current pose) in world version
+        ``world`` (default: the current one; a frame keeps the version it was exposed in),
+        remembered for the last few distinct poses."""
+        p = pose or self.chair.pose
+        version = self.camera.world_version if world is None else world
+        key = (version, *p)
         hits = self._hits_cache.get(key)
         if hits is None:
-            hits = cast_laser(self.course.world, key, self.mount, self.laser, self.rig)
+            hits = cast_laser(self._worlds[version], p, self.mount, self.laser, self.rig)
             if len(self._hits_cache) >= 64:
                 self._hits_cache.pop(next(iter(self._hits_cache)))
             self._hits_cache[key] = hits
@@ -272,8 +278,10 @@ class Simulator:
 
     # -- perception ---------------------------------------------------------------------------
 
-    def _truth_cloud(self, pose: tuple[float, float, float] | None = None) -> PointCloud:
-        hits = self.laser_hits(pose)
+    def _truth_cloud(
+        self, pose: tuple[float, float, float] | None = None, world: int | None = None
+    ) -> PointCloud:
+        hits = self.laser_hits(pose, world)
         vis = hits.visible
         xyz = hits.xyz[vis]
         s = self.settings.truth_noise_mm
@@ -351,7 +359,7 @@ class Simulator:
         if mode == "off" or not base.laser:
             return PointCloud(floor_depth_mm=self.mount.height_mm)
         if mode == "truth":
-            return self._truth_cloud(base.pose)
+            return self._truth_cloud(base.pose, base.world)
         from omnid.core.pipeline import perceive
         from omnid.daemon.perception_worker import job_capture
 
@@ -391,7 +399,7 @@ class Simulator:
         cache = self._rendered
         images = cache.get(frame.index)
         if images is None:
-            images = self.camera.render(frame, self.laser_hits(frame.pose))
+            images = self.camera.render(frame, self.laser_hits(frame.pose, frame.world))
             if len(cache) >= 8:
                 cache.pop(next(iter(cache)))
             cache[frame.index] = images
@@ -674,11 +682,10 @@ class Simulator:
         return 0.5 * (c.left_speed_mm_s + c.right_speed_mm_s), fwd
 
     def set_world(self, world: World) -> None:
-        """The world changes now (a hazard steps into view): laser, cameras and the truth
-        measures see the new one."""
+        """The world changes now (a hazard steps into view): frames exposed from now on, the
+        contacts and the truth measures see the new one."""
         self.course = dataclasses.replace(self.course, world=world)
-        self._hits_cache.clear()
-        self.camera.set_world(world)
+        self._worlds[self.camera.set_world(world)] = world
         self._box_rects, self._drop_rects = world_rects(world)
 
     def _pose_at(self, t_s: float) -> Pose:
@@ -771,7 +778,8 @@ class Simulator:
                         on = bool(self.control_unit.laser_on)
                         self._triggered += 1
                         # (rendered by capture(), which draws its own seed)
-                        f = SimFrame(-self._triggered, now, self.chair.pose, float(on), 0)
+                        version = self.camera.world_version
+                        f = SimFrame(-self._triggered, now, self.chair.pose, float(on), 0, version)
                         cycle.on_frame(Frame(now, None, f))
                 self._poll(now, failed)
                 if not cycle.wants_frame() or self._read_since is not None:

@@ -163,6 +163,6 @@ def test_frames_come_on_the_cameras_clock_with_their_exposure_time(tmp_path):
     stamps = np.array([t for _, t, _ in got])
     steps = np.diff(stamps) / period
     assert np.allclose(steps, np.round(steps), atol=1e-6) and steps.min() > 1.0 - 1e-6
-    assert np.any(steps >= 2.0) and srv.frames_dropped > 0  # 30 % lost: some gaps
+    assert np.any(steps > 2.0 - 1e-6) and srv.frames_dropped > 0  # 30 % lost: some gaps
     assert all(t_got >= t + 0.004 - 1e-3 for _, t, t_got in got)  # after the readout
     assert asked == list(stamps)
