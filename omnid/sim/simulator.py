@@ -261,8 +261,13 @@ class Simulator:
         ):
             if not on:
                 vis = np.zeros(len(hits), dtype=bool)
+            # The scene a camera fixed to the chair sees stays the same between its frames
+            # (a laser-off and a laser-on frame differ by the laser and the sensor's noise).
+            scene_seed = int(self.settings.seed) * 2 + k + 1
             images.extend(
-                render_camera_pair(cam, cam.project(hits.xyz[vis]), opts, rng, flux[vis, k])
+                render_camera_pair(
+                    cam, cam.project(hits.xyz[vis]), opts, rng, flux[vis, k], scene_seed
+                )
             )
         return StereoCapture(images[0], images[1], images[2], images[3], self.now_s)
 
