@@ -16,3 +16,17 @@ def rng() -> np.random.Generator:
 @pytest.fixture
 def nominal_rig() -> StereoRig:
     return StereoRig.nominal()
+
+
+@pytest.fixture(scope="session")
+def random_installations() -> list[tuple[object, object]]:
+    """10 random rigs with random lasers (rig 7: source near the mirror plane; rig 9: in it,
+    with a grid uniform in angle), each calibrated on its floor and extras: (RigCase,
+    Calibration). Shared by the calibration and matching rate tests (calibrating is the cost)."""
+    from omnid.experiments import rigs as ev
+
+    out = []
+    for r in range(10):
+        case = ev.rig_case(r, seed=1)
+        out.append((case, ev.calibrate_case(case, seed=1)))
+    return out

@@ -15,11 +15,7 @@ import pytest
 
 from omnid.cli import build_parser, main
 from omnid.core.geometry import StereoRig
-from omnid.sim.laser import ideal_lattice
-from omnid.sim.render import render_capture
-
-# ideal_lattice(): today's `best` matcher and floor calibration assume the regular slope lattice
-# (issue 9: laser-match switches this to a real laser when its matcher lands).
+from omnid.sim.installation import installation_captures, write_capture
 
 NAMES = ("mask1", "base1", "mask2", "base2")
 
@@ -27,12 +23,21 @@ NAMES = ("mask1", "base1", "mask2", "base2")
 @pytest.fixture(scope="module")
 def floor(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str]]:
     folder = tmp_path_factory.mktemp("newcomer")
-    cap = render_capture(StereoRig.nominal(), ideal_lattice().on_plane(1100.0), seed=3)
+    floor_cap, _ = installation_captures(StereoRig.nominal(), seed=3)
     args = []
     for name in NAMES:
-        assert cv2.imwrite(str(folder / f"{name}.png"), getattr(cap, name))
+        assert cv2.imwrite(str(folder / f"{name}.png"), getattr(floor_cap, name))
         args += [f"--{name}", str(folder / f"{name}.png")]
     return folder, args
+
+
+def extra_args(folder: Path) -> list[str]:
+    """The installer's extra captures (a box, a wall) beside the floor, for calibrate --extra."""
+    extras = installation_captures(StereoRig.nominal(), seed=3)[1]
+    out = []
+    for name, cap in extras.items():
+        out += ["--extra", str(write_capture(cap, folder / f"extra_{name}"))]
+    return out
 
 
 def one_error_line(capsys: pytest.CaptureFixture[str], command: str) -> str:
@@ -50,9 +55,9 @@ def test_calibration_given_a_png_is_one_line(floor, capsys) -> None:
 
 
 def test_calibrate_to_a_missing_folder_names_the_file_asked_for(floor, capsys) -> None:
-    _, images = floor
+    folder, images = floor
     out = "/nonexistent-omnid/c.yaml"
-    argv = ["calibrate", *images, "--floor-depth-mm", "1100", "--out", out]
+    argv = ["calibrate", *images, *extra_args(folder), "--floor-depth-mm", "1100", "--out", out]
     assert main(argv) == 2
     line = one_error_line(capsys, "calibrate")
     assert out in line and ".tmp" not in line
@@ -67,7 +72,8 @@ def test_scene_without_out_says_its_name_once(capsys) -> None:
 def test_perceive_with_mask_equal_to_base_is_refused_with_a_hint(floor, tmp_path, capsys) -> None:
     folder, images = floor
     calib = tmp_path / "calib.yaml"
-    assert main(["calibrate", *images, "--floor-depth-mm", "1100", "--out", str(calib)]) == 0
+    argv = ["calibrate", *images, *extra_args(folder), "--floor-depth-mm", "1100"]
+    assert main([*argv, "--out", str(calib)]) == 0
     capsys.readouterr()
     same = [a if not a.endswith("base1.png") else str(folder / "mask1.png") for a in images]
     assert main(["perceive", "--calib", str(calib), *same]) == 2
@@ -81,7 +87,8 @@ def test_perceive_with_mask_equal_to_base_is_refused_with_a_hint(floor, tmp_path
     # files are written as the umask says (0644 under 022), not 0600
     old = os.umask(0o022)
     try:
-        assert main(["calibrate", *images, "--floor-depth-mm", "1100", "--out", str(calib)]) == 0
+        argv = ["calibrate", *images, *extra_args(folder), "--floor-depth-mm", "1100"]
+        assert main([*argv, "--out", str(calib)]) == 0
     finally:
         os.umask(old)
     assert calib.stat().st_mode & 0o777 == 0o644

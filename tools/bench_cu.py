@@ -68,7 +68,7 @@ async def bench_round_trip(exchanges: int, baudrate: int) -> None:
         lost = 0
         for i in range(exchanges):
             seq = i & 0xFF
-            wire = codec.encode_command(cmd.to_frame(seq, 250))
+            wire = codec.encode_command(cmd.to_frame(seq, 250, cycle=i & 0xFFFF))
             t0 = time.perf_counter()
             await t.write(wire)
             got = False
@@ -88,7 +88,10 @@ async def bench_round_trip(exchanges: int, baudrate: int) -> None:
     p99 = rtts[int(0.99 * (len(rtts) - 1))] * 1000
     print(f"round trip over pty, {exchanges} exchanges ({lost} lost):")
     print(f"  median {med:.3f} ms   p99 {p99:.3f} ms   max {rtts[-1] * 1000:.3f} ms")
-    print(f"  wire time at {baudrate} baud (13 + 21 bytes, 8N1): {wire_ms:.3f} ms")
+    print(
+        f"  wire time at {baudrate} baud ({codec.COMMAND_FRAME_LEN} + {codec.REPLY_FRAME_LEN} "
+        f"bytes, 8N1): {wire_ms:.3f} ms"
+    )
     print(f"  estimated on RS-485: median {med + wire_ms:.3f} ms, p99 {p99 + wire_ms:.3f} ms")
 
 

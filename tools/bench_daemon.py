@@ -109,12 +109,10 @@ def step_cost(minutes: float) -> None:
 def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
     """The emulated chair for a daemon process: control-unit and GS311 emulators on ptys, a
     rendered floor on a frame server's socket, a calibration, the daemon's config file."""
-    from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
     from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
     from omnid.devices.emulators.gs311 import Gs311Emulator
-    from omnid.sim.laser import ideal_lattice
-    from omnid.sim.render import render_capture
+    from omnid.sim.installation import calibrate_installed, installation_captures
 
     class TimedUnit(ControlUnitEmulator):
         """Records when the first command with a non-zero duty arrives after ``arm()``."""
@@ -132,9 +130,9 @@ def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
 
     tmp = Path(tempfile.mkdtemp(prefix="omnid-bench-"))
     rig = StereoRig.nominal(floor_depth_mm=1100.0)
-    cap = render_capture(rig, ideal_lattice().on_plane(1100.0), seed=1)
+    cap = installation_captures(rig, seed=1)[0]
     calib_path = tmp / "calib.yaml"
-    calibrate_from_capture(cap, 1100.0, rig.baseline_mm).save(calib_path)
+    calibrate_installed(rig, seed=1).save(calib_path)
     cu = TimedUnit(MotorPlant())
     gs = Gs311Emulator([(0.0, 0.0, 0.0)], noise_deg=0.2)
     frames = tmp / "frames.sock"
@@ -167,27 +165,30 @@ def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
 
 
 def record_cost(a: argparse.Namespace) -> None:
-    """Control-loop lateness of ``omnid run`` with ``--record`` against the same daemon without
-    it, in alternating rounds of the same setup (the machine's load drifts between rounds, not
-    within a pair): perception running, a capture recorded every 2 s (5x the shipped rate),
-    the chair turning left and right on teleop keys so every topic carries data."""
+    """Control-loop lateness of ``omnid run --record`` against the same daemon without it,
+    **at the same time**: two emulated chairs, two daemons, one of them recording — swapped
+    every round — so the machine's load (shared with other work) hits both alike. Perception
+    runs in both; a capture is recorded every 2 s (5x the shipped rate); both chairs turn left
+    and right on teleop keys so every topic carries data."""
+    import contextlib
+
     from omnid.record.reader import read_recording
     from omnid.sim.frame_server import FrameServer
 
-    b = bench_setup(a)
-    text = b.cfg.read_text() + "record:\n  capture_period_s: 2.0\n"
-    b.cfg.write_text(text)
+    rigs = [bench_setup(a), bench_setup(a)]
+    for b in rigs:
+        b.cfg.write_text(b.cfg.read_text() + "record:\n  capture_period_s: 2.0\n")
     late: dict[str, list[float]] = {"without": [], "with --record": []}
-    rows = []
+    writer: list[dict] = []
     stop = threading.Event()
 
-    def drive() -> None:  # keys every 0.3 s: left, right, stop, ...
+    def drive(teleop: Path) -> None:  # keys every 0.3 s: left, right, stop, ...
         k = 0
         while not stop.is_set():
-            if b.teleop.exists():
+            if teleop.exists():
                 try:
                     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
-                        c.connect(str(b.teleop))
+                        c.connect(str(teleop))
                         c.settimeout(1.0)
                         while not stop.is_set():
                             c.sendall([b"left\n", b"right\n", b"stop\n"][k % 3])
@@ -198,16 +199,21 @@ def record_cost(a: argparse.Namespace) -> None:
                     pass
             stop.wait(0.2)
 
-    with FrameServer(b.frames, b.provider):
+    with contextlib.ExitStack() as stack:
+        for b in rigs:
+            stack.enter_context(FrameServer(b.frames, b.provider))
         for r in range(a.rounds):
-            for name in late:
-                extra = []
-                rec_path = b.tmp / f"rec-{r}.mcap"
-                if name != "without":
-                    extra = ["--record", str(rec_path)]
+            procs, logs, roles = [], [], []
+            stop.clear()
+            for i, b in enumerate(rigs):
+                recording = (r + i) % 2 == 0
+                roles.append("with --record" if recording else "without")
+                extra = ["--record", str(b.tmp / f"rec-{r}.mcap")] if recording else []
                 b.stats_path.unlink(missing_ok=True)
-                with open(b.tmp / f"daemon-{r}-{len(extra)}.log", "w") as err:
-                    proc = subprocess.Popen(
+                err = open(b.tmp / f"daemon-{r}.log", "w")  # noqa: SIM115
+                logs.append(err)
+                procs.append(
+                    subprocess.Popen(
                         [
                             sys.executable,
                             "-m",
@@ -222,36 +228,50 @@ def record_cost(a: argparse.Namespace) -> None:
                         stderr=err,
                         stdout=subprocess.DEVNULL,
                     )
-                    stop.clear()
-                    driver = threading.Thread(target=drive, daemon=True)
-                    driver.start()
-                    time.sleep(a.seconds)
-                    stop.set()
-                    proc.send_signal(signal.SIGTERM)
-                    proc.wait(timeout=30)
-                    driver.join(timeout=5)
+                )
+            drivers = [threading.Thread(target=drive, args=(b.teleop,), daemon=True) for b in rigs]
+            for d in drivers:
+                d.start()
+            time.sleep(a.seconds)
+            stop.set()
+            for proc in procs:
+                proc.send_signal(signal.SIGTERM)
+            for proc, err in zip(procs, logs, strict=True):
+                proc.wait(timeout=30)
+                err.close()
+            for d in drivers:
+                d.join(timeout=5)
+            for b, role in zip(rigs, roles, strict=True):
                 st = json.loads(b.stats_path.read_text())
                 xs = st["lateness_s"][int(3.0 * 50) :]  # after start-up
-                late[name] += xs
+                late[role] += xs
                 note = ""
-                if extra:
-                    rec = read_recording([rec_path], topics={"/recorder"})
+                if role != "without":
+                    path = b.tmp / f"rec-{r}.mcap"
+                    rec = read_recording([path], topics={"/recorder"})
                     last = rec.messages[-1].doc if rec.messages else {}
-                    size = rec_path.stat().st_size / 1e6
+                    writer.append(last)
                     note = (
-                        f"  recorded {last.get('written', 0)} messages, {size:.1f} MB, "
-                        f"dropped {last.get('dropped', 0)}"
+                        f"  {last.get('written', 0)} messages, {path.stat().st_size / 1e6:.1f} MB, "
+                        f"dropped {last.get('dropped', 0)}, writer busy "
+                        f"{100 * last.get('busy_s', 0) / a.seconds:.1f} %, longest stretch without a GIL hand-back "
+                        f"{last.get('slice_max_ms', 0):.2f} ms (wall, preemption included; "
+                        f"{last.get('slices_over_half_ms', 0)} over 0.5 ms)"
                     )
-                rows.append(
-                    f"  round {r + 1} {name:14s} p50 {pct(xs, 50):.2f} ms  p99 {pct(xs, 99):.2f} ms"
+                print(
+                    f"  round {r + 1} {role:14s} p50 {pct(xs, 50):.2f} ms  p99 {pct(xs, 99):.2f} ms"
                     f"  max {pct(xs, 100):.2f} ms  ({len(xs)} cycles, {st['skipped']} skipped)"
-                    + note
+                    + note,
+                    flush=True,
                 )
-                print(rows[-1], flush=True)
-    b.gs.close()
-    b.cu.close()
+    for b in rigs:
+        b.gs.close()
+        b.cu.close()
     p0, p1 = pct(late["without"], 99), pct(late["with --record"], 99)
-    print(f"machine: {os.cpu_count()} cores; {a.rounds} rounds of {a.seconds:g} s each, 50 Hz")
+    print(
+        f"machine: {os.cpu_count()} cores; {a.rounds} rounds of {a.seconds:g} s, two daemons at "
+        "once (one recording, swapped each round), 50 Hz"
+    )
     for name, xs in late.items():
         print(
             f"  {name:14s} lateness p50 {pct(xs, 50):.2f} ms  p99 {pct(xs, 99):.2f} ms  "

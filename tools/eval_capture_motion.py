@@ -78,15 +78,15 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--grout-gray", type=float, default=35.0, help="grout darker by, gray")
     a = ap.parse_args()
-    from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
     from omnid.core.pipeline import perceive
     from omnid.core.types import PointClass
-    from omnid.sim.laser import ideal_lattice
+    from omnid.sim.installation import calibrate_installed
+    from omnid.sim.laser import LaserProjector
 
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    pattern = ideal_lattice()  # today's calibration assumes the regular lattice (issue 9)
-    calib = calibrate_from_capture(capture_at(rig, pattern, 0.0, False, 0), FLOOR_MM, 200.0)
+    pattern = LaserProjector()  # the simulator's physical laser
+    calib = calibrate_installed(rig, pattern, seed=0)
     mm_per_px = FLOOR_MM / rig.cam1.f_over_k_px
     print(
         f"mask → base gap {a.gap_s * 1e3:.0f} ms; floor {mm_per_px:.1f} mm/px; {a.seeds} seeds; "

@@ -17,13 +17,13 @@ import argparse
 
 import numpy as np
 
-from omnid.core.calibration import calibrate_from_capture
 from omnid.core.detect import detect_dots
 from omnid.core.matching import match_dots
 from omnid.core.triangulate import triangulate
 from omnid.sim.course import walls
-from omnid.sim.laser import ideal_lattice
-from omnid.sim.render import RenderOptions, render_camera_pair, render_capture
+from omnid.sim.installation import calibrate_installed
+from omnid.sim.laser import LaserProjector
+from omnid.sim.render import RenderOptions, render_camera_pair
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.world import Box, RigMount, World, cast_laser
 
@@ -36,8 +36,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     args = ap.parse_args()
     rig = misaligned_rig(H)
-    pat = ideal_lattice()  # today's matcher assumes the regular lattice (issue 9)
-    calib = calibrate_from_capture(render_capture(rig, pat.on_plane(H), seed=7919), H, 200.0)
+    pat = LaserProjector()  # the simulator's physical laser
+    calib = calibrate_installed(rig, pat, seed=0)
     world = World(
         boxes=(
             Box(1800.0, 1900.0, -2000.0, -650.0, 1000.0),

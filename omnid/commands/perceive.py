@@ -1,8 +1,11 @@
 """``omnid perceive``: one stereo capture → classified 3-D laser dots (SPEC §6).
 
 With ``--json`` it prints ONE JSON object ``{"points": [{x, y, z, h, r1, c1, r2, c2, class}, ...],
-...}`` (mm in the rig frame of SPEC §2; pixel positions as floats); without it a short summary
-for a person: points per class, the matched fraction, the nearest obstacle and drop-off ahead.
+"calibration_health": {explained, residual_ratio, dots, ok}, ...}`` (mm in the rig frame of
+SPEC §2; pixel positions as floats); without it a short summary for a person: points per class,
+the matched fraction, how well the capture fits the calibration, the nearest obstacle and
+drop-off ahead. A capture that does not fit the calibration (the rig knocked, another rig's
+captures) is refused with one line, nothing written.
 ``--ply`` and ``--png`` also write the cloud (PLY) and a top-down picture of the free-space map
 built from this capture with the points over it; both are written atomically.
 """
@@ -101,6 +104,12 @@ def run(args: argparse.Namespace) -> int:
         capture, calib, args.method, PerceptionSettings(detection_method=args.detect)
     )
     cloud = result.cloud
+    health = result.health
+    if health is not None and not health.ok:
+        raise InputError(
+            f"{health.describe()}: the rig has moved since calibration, or the captures are "
+            f"of another rig; recalibrate ({args.calib})"
+        )
     if args.ply:
         from omnid.core.export import ply_bytes
 
@@ -119,12 +128,16 @@ def run(args: argparse.Namespace) -> int:
         c.label: nearest_ahead_mm(cloud, int(c), args.half_width_mm)
         for c in (PointClass.OBSTACLE, PointClass.DROPOFF)
     }
-    if len(result.dots1) == 0 or len(result.dots2) == 0:
+    # a camera with fewer dots than a capture can be judged by has no laser in it: a spot or
+    # two of sensor noise in base minus mask is not a laser pattern (hundreds of dots)
+    few = PerceptionSettings().health.min_dots
+    dark = [(i, len(d)) for i, d in ((1, result.dots1), (2, result.dots2)) if len(d) < few]
+    if dark:
         import sys
 
         print(
             "perceive: no laser dots found in camera "
-            + " or ".join(str(i) for i, d in ((1, result.dots1), (2, result.dots2)) if len(d) == 0)
+            + " or ".join(f"{i}" + (f" (only {n} spots)" if n else "") for i, n in dark)
             + ": is the laser on in the base pictures and off in the mask ones (not swapped)?",
             file=sys.stderr,
         )
@@ -137,6 +150,20 @@ def run(args: argparse.Namespace) -> int:
             "dots1": len(result.dots1),
             "dots2": len(result.dots2),
             "matched_fraction": result.matched_fraction,
+            "calibration_health": None
+            if health is None
+            else {
+                "explained": None if math.isnan(health.explained) else health.explained,
+                "residual_ratio": None
+                if math.isnan(health.residual_ratio)
+                else health.residual_ratio,
+                "dots": health.dots,
+                "ok": health.ok,
+            },
+            "not_understood": result.not_understood,
+            "source_estimate": None
+            if result.source_estimate is None
+            else {"source_mm": result.source_estimate[0], "sigma_mm": result.source_estimate[1]},
             "nearest_obstacle_mm": None if math.isinf(nearest["obstacle"]) else nearest["obstacle"],
             "nearest_dropoff_mm": None if math.isinf(nearest["dropoff"]) else nearest["dropoff"],
             "points": cloud.to_records(),
@@ -151,6 +178,14 @@ def run(args: argparse.Namespace) -> int:
         f"matched {100 * result.matched_fraction:.0f} % "
         f"({len(cloud)} pairs of {len(result.dots1)} / {len(result.dots2)} dots found)"
     )
+    if health is not None:
+        print(health.describe())
+    if result.not_understood:
+        print(
+            f"{result.not_understood} dots off the floor not understood (the calibration does "
+            "not know the laser's source and this capture could not place it): not free space; "
+            "recalibrate with --extra to read them"
+        )
     for label, what in (("obstacle", "obstacle"), ("dropoff", "drop-off")):
         d = nearest[label]
         where = f"{d:.0f} mm" if math.isfinite(d) else "none seen"

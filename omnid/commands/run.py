@@ -43,6 +43,11 @@ def register(subparsers: Any) -> None:
         help="serve the recorded topics live over the Foxglove WebSocket protocol (default "
         "127.0.0.1:8765)",
     )
+    parser.add_argument(
+        "--inject-faults",
+        action="store_true",
+        help=argparse.SUPPRESS,  # tools/fault_figures.py only (signals inject faults)
+    )
     parser.set_defaults(func=handle)
 
 
@@ -64,4 +69,10 @@ def handle(args: argparse.Namespace) -> int:
         return 2 if n_err else 0
     from omnid.daemon.run import main
 
-    return main(args.config, stats_out=args.stats_out, record=args.record, view=args.view)
+    return main(
+        args.config,
+        stats_out=args.stats_out,
+        record=args.record,
+        view=args.view,
+        inject_faults=args.inject_faults,
+    )

@@ -40,6 +40,8 @@ sums; thresholds are still in gray levels of the mean.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -48,6 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import Settings, require, setting
+from omnid.core import spotfit
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -98,8 +101,9 @@ class DetectionParams(Settings):
         5, 2, 20
     )  # local background: min filter of this radius, px
     best_min_contrast: float = setting(
-        0.5, 0.0, 0.99
-    )  # (peak − ring 3 px out) / peak ≥ this: dots are compact
+        0.12, 0.0, 0.99
+    )  # compact: the peak's own curvature predicts (peak − ring 3 px out) / peak ≥ this
+    # (0.12: spots up to σ ≈ 5.8 px along their flatter axis pass, smooth bumps do not)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -298,6 +302,62 @@ def _laser_difference(mask: NDArray, base: NDArray, weights: tuple[float, float,
     return to_gray(base, weights) - to_gray(mask, weights)
 
 
+def _laser_gray(image: NDArray, weights: tuple[float, float, float]) -> NDArray:
+    """The laser's gray of one frame (the channel or combination :func:`_laser_difference`
+    subtracts), uint8 for an 8-bit single-channel laser gray, else float32."""
+    if image.dtype == np.uint8:
+        if image.ndim == 2:
+            return image
+        nz = np.flatnonzero(np.asarray(weights, dtype=np.float64))
+        if len(nz) == 1:
+            return image[:, :, int(nz[0])]
+    return to_gray(image, weights)
+
+
+#: Frame pixels darker than this (gray) say nothing about the flicker gain.
+_FLICKER_MIN_GRAY = 16.0
+#: A flicker gain smaller than this is left alone.
+_FLICKER_MIN_GAIN = 0.003
+
+
+def _flicker_gain(d: NDArray, mask_gray: NDArray, noise: float) -> float:
+    """The illumination change from mask to base as a gain g: the subtracted image holds
+    g · mask besides the laser (mains flicker, auto exposure). The median of d / mask over a
+    subsample of rows (24), where the mask is lit; the laser's dots are too few to move it.
+    0 when the copy stays within two noise sigmas (g · the lit scene's mean): then it holds no
+    edge the local background (:func:`_background_half`) and the compactness test would not
+    deal with anyway."""
+    step = max(d.shape[0] // 24, 1)
+    m = mask_gray[::step].astype(np.float32)
+    lit = m >= np.float32(_FLICKER_MIN_GRAY)
+    if np.count_nonzero(lit) < 64:
+        return 0.0
+    ratio = d[::step][lit] / m[lit]
+    mid = len(ratio) // 2
+    gain = float(np.partition(ratio, mid)[mid])
+    return gain if abs(gain) * float(m[lit].mean()) >= 2.0 * noise else 0.0
+
+
+def _clutter(small: NDArray[np.float32], bg_half: NDArray[np.float32], mask_gray: NDArray) -> float:
+    """The spread of the subtracted image about its local background at the dots' scale, gray
+    levels: sensor noise and whatever of the scene the two frames do not share.
+
+    Measured at half resolution (``small`` = pyrDown of the subtracted image, whose 5x5 kernel
+    divides white noise by 128/35 = 3.66, about what the σ = 1 px smoothing of the
+    candidates does: 3.5), on every 8th row, where the mask frame sees the scene (not the dark
+    housing, which holds no noise), from the lower half of the values only — the dots stand
+    above the background, never below it: (median − 25th percentile) / 0.6745. 0 with too
+    few samples.
+    """
+    lit = mask_gray[::16, ::2][: (small.shape[0] + 7) // 8, : small.shape[1]] >= _HOUSING_GRAY
+    res = (small[::8] - bg_half[::8])[: lit.shape[0], : lit.shape[1]][lit]
+    if res.size < 64:
+        return 0.0
+    k25, k50 = res.size // 4, res.size // 2
+    q = np.partition(res, (k25, k50))
+    return float(q[k50] - q[k25]) / 0.6745
+
+
 def _noise_sigma(d: NDArray) -> float:
     """Robust noise sigma of an image, gray levels: MAD of horizontal neighbour differences
     (on a subsample of rows), divided by √2 for the difference of two samples.
@@ -374,24 +434,158 @@ def _box_of(
     )
 
 
+#: Spot sizes the matched filter follows (sigma, px): the estimate is clipped to this range.
+_SPOT_SIGMA_RANGE_PX = (0.8, 3.5)
+#: In an image of spots larger than this (sigma, px) every dot is fitted (spotfit): their
+#: neighbours overlap them.
+_FIT_ALL_FROM_PX = 1.5
+#: ... and a dot with at least this many clipped pixels starts from their middle.
+_CLIPPED_FIT_PX = 8
+#: ... looked for within this of its peak pixel, px.
+_CLIPPED_HALF_PX = 6
+#: A neighbour whose light moves a filtered maximum by less than this is left alone, px.
+_COUPLING_PX = 0.01
+#: Fixed-point iterations of the neighbours' pull (:func:`_neighbour_pull`).
+_PULL_ITERATIONS = 4
+#: A pull larger than this (px) is left to the fit.
+_PULL_MAX_PX = 0.75
+#: Two maxima are two dots if the image dips between them by this share of the dimmer.
+_SADDLE_DEPTH = 0.05
+#: ... looked for up to this many filtered sigmas apart.
+_SADDLE_REACH = 3.0
+#: With fewer unclipped dots than this, the spot size comes from a censored fit.
+_MIN_UNCLIPPED = 16
+#: How many of the brightest dots that fit uses.
+_SIZE_FIT_SAMPLE = 48
+#: The compactness test's ring: the predicted contrast 3 px from a peak (thesis-sized dots).
+_RING_PX = 3.0
+#: ... and a flat top's: the median of a ring this many image spot sizes out must be this far
+#: below it.
+_FAR_RING = 2.5
+_FAR_CONTRAST = 0.9
+#: Outside the mirror's disk the camera sees its dark housing (SPEC §6): a mask-frame pixel
+#: darker than this (gray) is not the scene.
+_HOUSING_GRAY = 12.0
+#: Spots larger than this (sigma, px) get their own matched filter for the centres.
+_MATCHED_FROM_PX = 1.5
+#: The 3x3 neighbourhood of a peak and the least-squares solve of a quadratic through it:
+#: ln F ≈ a + b_r·r + b_c·c + q_r·r² + q_c·c² + q_rc·r·c on the matched-filtered image F.
+_Q_OFF_R, _Q_OFF_C = (a.ravel() for a in np.meshgrid((-1, 0, 1), (-1, 0, 1), indexing="ij"))
+_Q_DESIGN = np.column_stack(
+    [np.ones(9), _Q_OFF_R, _Q_OFF_C, _Q_OFF_R**2, _Q_OFF_C**2, _Q_OFF_R * _Q_OFF_C]
+).astype(np.float64)
+_Q_SOLVE32 = np.linalg.pinv(_Q_DESIGN).T.astype(np.float32)  # (9, 6): log values @ this
+
+
+def _log_quadratic(
+    f: NDArray, rows: NDArray[np.intp], cols: NDArray[np.intp]
+) -> tuple[
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.bool_],
+]:
+    """Sub-pixel maximum of ``f`` near each peak pixel from a quadratic fitted to ln f on its
+    3x3 neighbourhood (a Gaussian's logarithm is exactly quadratic, so on a smoothed spot this
+    is the maximum of the smoothed image). Returns (row, col, the smoothed spot's variance
+    px² — the mean over the two axes —, the larger of its two principal variances, and
+    whether the quadratic is a maximum within 1 px)."""
+    vals = np.lib.stride_tricks.sliding_window_view(f, (3, 3))[rows - 1, cols - 1].reshape(-1, 9)
+    top = vals[:, 4:5]
+    logs = np.log(np.maximum(vals, np.float32(1e-3) * np.maximum(top, np.float32(1e-3))))
+    _, br, bc, qr, qc, qrc = (logs @ _Q_SOLVE32).T.astype(np.float64)
+    det = 4.0 * qr * qc - qrc * qrc
+    ok = (qr < 0) & (qc < 0) & (det > 1e-12)
+    safe = np.where(ok, det, 1.0)
+    dr = -(2.0 * qc * br - qrc * bc) / safe
+    dc = -(2.0 * qr * bc - qrc * br) / safe
+    ok &= (np.abs(dr) <= 1.0) & (np.abs(dc) <= 1.0)
+    mean_var = np.where(ok, -1.0 / np.minimum(qr + qc, -1e-9), np.inf)  # −1/(2·mean(q_r, q_c))
+    # The flatter principal curvature of the quadratic form [[q_r, q_rc/2], [q_rc/2, q_c]].
+    flat = 0.5 * (qr + qc) + np.sqrt(0.25 * (qr - qc) ** 2 + 0.25 * qrc * qrc)
+    max_var = np.where(ok & (flat < 0), -0.5 / np.minimum(flat, -1e-12), np.inf)
+    return rows + np.clip(dr, -1, 1), cols + np.clip(dc, -1, 1), mean_var, max_var, ok
+
+
+def _spot_sigma(mean_var: NDArray[np.float64], peak: NDArray) -> float:
+    """The image's spot size (Gaussian sigma, px) from the curvature of the σ = 1 px smoothed
+    image at its peaks (``mean_var`` of :func:`_log_quadratic`): a spot of sigma σ there has
+    the variance σ² + 1 + 1/12 (the smoothing and the pixel's own box). The median over the
+    bright peaks — at least half as bright as the brightest few per cent, so that grains and
+    a changing scene's bumps, however many, do not count — ; a clipped or flat top reads wider,
+    which is what its matched filter should be."""
+    if len(peak) > 1:
+        top = np.partition(peak, int(0.95 * (len(peak) - 1)))[int(0.95 * (len(peak) - 1))]
+        mean_var = mean_var[peak >= 0.5 * top]
+    good = mean_var[np.isfinite(mean_var)]
+    if len(good) == 0:
+        return 1.3
+    sigma2 = float(np.median(good)) - 1.0 - 1.0 / 12.0
+    lo, hi = _SPOT_SIGMA_RANGE_PX
+    return float(np.clip(math.sqrt(max(sigma2, lo * lo)), lo, hi))
+
+
+def _clipped_sigma(
+    d: NDArray[np.float32],
+    saturated: NDArray[np.bool_] | None,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    centre: NDArray,
+    ok: NDArray[np.bool_],
+    start_px: float,
+) -> float:
+    """The spot size when the sensor clipped the tops: the median sigma of the censored
+    least-squares fit (:func:`~omnid.core.spotfit.fit_spots`) of the brightest
+    :data:`_SIZE_FIT_SAMPLE` peaks, whose clipped pixels only bound the light from below."""
+    lo, hi = _SPOT_SIGMA_RANGE_PX
+    k = np.flatnonzero(ok)
+    if len(k) == 0:
+        return start_px
+    k = k[np.argsort(centre[k])[-_SIZE_FIT_SAMPLE:]]
+    start = float(np.clip(start_px, lo, 2.5))
+    peak = centre[k] * (start * start + 1.0) / (start * start)
+    _, _, _, s = spotfit.fit_spots(d, saturated, rows[k], cols[k], start, peak, start=(r[k], c[k]))
+    return float(np.clip(np.median(s), lo, hi))
+
+
 def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np.float64]:
     """Sub-pixel dot centres.
 
-    1. gray: the laser's channel combination (``bgr_weights``), signed base − mask; its noise
-       sigma (:func:`_noise_sigma`) sets the detection threshold;
+    1. gray: the laser's channel combination (``bgr_weights``), signed base − mask;
     2. local background (flicker) estimated at half resolution, see :func:`_background_half`;
+       the noise sigma (:func:`_noise_sigma`) and the clutter about that background
+       (:func:`_clutter`: a changed scene) set the detection threshold;
     3. only the box around the places standing 0.6 · threshold above that background at half
        resolution is processed further (the laser dots usually cover a part of the mirror disk
        only: the pattern is thrown to the front). A dot the whole frame would show has its
        smoothed peak above the threshold, and ≥ ~0.69 of that at half resolution (the pyramid
        samples every other pixel), so only a lone dot barely above the threshold, outside the
        box of all the others, can be lost to the box;
-    4. candidates: local maxima (3x3) of a Gaussian-smoothed copy (σ = 1 px, close to a matched
-       filter for the dots) above ``best_min_peak_gray`` and ``best_snr`` noise sigmas, and
-       compact: ``best_min_contrast`` against the ring 3 px out (rejects edges and grains on
-       slopes), and at least ``best_relative_peak`` of the brightest value within
-       ``best_relative_radius_px`` (rejects speckle grains in a dot's halo and dim ghosts);
-    5. centre: a weighted Gaussian fit on the 5x5 background-free pixels, see :func:`_refine`.
+    4. the illumination change between the frames (:func:`_flicker_gain`) is taken out as
+       gain · mask when it stands above the noise (it copies the scene, sharp edges and all);
+    5. candidates: local maxima (3x3) of a σ = 1 px smoothed copy above that threshold;
+       compact (``best_min_contrast``: the contrast 3 px out that each peak's own curvature
+       predicts, or for a flat top a ring a few spot sizes out, :func:`_ring_contrast`), at
+       least ``best_relative_peak`` of the brightest value within
+       ``best_relative_radius_px`` (more for large spots; rejects speckle grains in a dot's
+       halo and dim ghosts), and for wide or clipped tops not a mere bump on a brighter
+       maximum's top (:func:`_one_spot`). The spot size σ is measured from the same
+       curvatures (:func:`_spot_sigma`; from a censored fit where the sensor clipped every
+       top);
+    6. centre: the maximum of the matched-filtered image (:func:`_log_quadratic`; the 1 px
+       smoothing for spots up to 1.5 px, a Gaussian of σ beyond) — for a Gaussian spot the
+       least-squares (maximum-likelihood) centre, and for any spot that is point-symmetric
+       about its centre (flat, clipped or stretched tops, halos) the centre itself. A
+       neighbour's light pulls a filtered maximum toward it: for small spots the pull is
+       solved for (:func:`_neighbour_pull`), and dots it does not resolve are fitted
+       (:func:`~omnid.core.spotfit.fit_spots`: a Gaussian and a plane per dot, every
+       neighbour's light taken out, clipped pixels as lower bounds); in an image of spots
+       larger than 1.5 px every dot is fitted, those with a clipped top from the middle of
+       their clipped pixels. Dots the mirror's rim cuts are fitted on the pixels that see
+       them (:func:`_refine`).
 
     Cost: the full frame is touched only by the subtraction (int16 for 8-bit input), the
     noise estimate (a few rows) and one pyramid step; every other filter runs at half
@@ -400,10 +594,29 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
     full = _laser_difference(mask, base, p.bgr_weights)
     h_img, w_img = full.shape
     noise = _noise_sigma(full)
-    # The smoothing divides white noise by about 2·√π·σ = 3.5.
-    threshold = max(p.best_min_peak_gray, p.best_snr * noise / 3.5)
     small = np.asarray(cv2.pyrDown(full), dtype=np.float32)
+    mask_gray = _laser_gray(mask, p.bgr_weights)
+    gain = _flicker_gain(full, mask_gray, noise)
+    flicker: NDArray[np.float32] | None = None  # the scene's copy in the subtracted image
+    clip = None if base.dtype.kind == "f" else float(np.iinfo(base.dtype).max)
+    if abs(gain) >= _FLICKER_MIN_GAIN:
+        # The scene's copy, sharp edges (the mirror's rim) and all, taken out exactly; where
+        # the base frame clips, the copy is only what was left below the clip level.
+        if clip is not None and float(mask_gray.max()) * (1.0 + gain) > clip:
+            m = mask_gray.astype(np.float32)
+            flicker = np.minimum(np.float32(gain) * m, np.float32(clip) - m)
+            small -= np.asarray(cv2.pyrDown(flicker), dtype=np.float32)
+        else:
+            small -= np.float32(gain) * np.asarray(cv2.pyrDown(mask_gray), dtype=np.float32)
     bg_half = _background_half(small, p.best_background_radius_px, noise)
+    # The σ = 1 px smoothing divides white noise by about 2·√π·σ = 3.5; the scene the two
+    # frames do not share (motion, a changed scene, frames of different cameras) adds clutter.
+    spread = max(noise / 3.5, _clutter(small, bg_half, mask_gray))
+    threshold = max(p.best_min_peak_gray, p.best_snr * spread)
+    # The laser only adds light: a background below zero is the scene's change (a moved
+    # mask's edge, something gone), not a floor to measure dots from — above it its own edge
+    # would stand out like a row of dots.
+    np.maximum(bg_half, 0.0, out=bg_half)
     if min(h_img, w_img) < _MIN_PYRAMID_PX:
         r0, r1, c0, c1 = 0, h_img, 0, w_img
     else:
@@ -413,29 +626,55 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
             return _empty()
         r0, r1, c0, c1 = box
     sub = full[r0:r1, c0:c1].astype(np.float32)
+    if flicker is not None:
+        sub -= flicker[r0:r1, c0:c1]
+    elif abs(gain) >= _FLICKER_MIN_GAIN:
+        sub -= np.float32(gain) * mask_gray[r0:r1, c0:c1].astype(np.float32)
     h, w = sub.shape
     # pyrUp puts half-resolution pixel i at full-resolution pixel 2i, as pyrDown took it.
     part = bg_half[r0 // 2 : (r1 + 1) // 2 + 1, c0 // 2 : (c1 + 1) // 2 + 1]
     d = sub - cv2.pyrUp(part)[:h, :w]
     sm = cv2.GaussianBlur(d, (7, 7), 1.0)
-    peaks = sm >= cv2.dilate(sm, np.ones((3, 3), np.uint8))
-    peaks &= sm > threshold
-    # The 5x5 fit and the contrast ring need 3 px around the peak inside the image.
-    peaks[: max(3 - r0, 0), :] = False
-    peaks[h - max(3 - (h_img - r1), 0) :, :] = False
-    peaks[:, : max(3 - c0, 0)] = False
-    peaks[:, w - max(3 - (w_img - c1), 0) :] = False
-    flat = np.flatnonzero(peaks)  # (much faster than np.nonzero on a 2-D mask)
-    rows, cols = np.divmod(flat, w)
+    rows, cols = _local_maxima(sm, threshold, 3, (r0, r1, c0, c1), (h_img, w_img))
     centre = sm[rows, cols]
-    if p.best_min_contrast > 0 and len(rows):
-        # A dot is compact: its smoothed peak stands well above the ring 3 px around it; edges
-        # (the mirror rim in a flickering capture) and grains on a dot's slope do not.
-        ring = sum(sm[rows + dr, cols + dc] for dr, dc in _RING3) / np.float32(len(_RING3))
-        ok = centre - ring >= p.best_min_contrast * centre
-        rows, cols, centre = rows[ok], cols[ok], centre[ok]
+    r, c, mean_var, max_var, ok = _log_quadratic(sm, rows, cols)
+    # A top within 1 px of a clipped pixel of the base frame is flattened by the sensor, by
+    # the laser if the scene itself (the mask frame) was not clipped there.
+    saturated = _saturated(base, p.bgr_weights, (r0, r1, c0, c1))
+    clipped: NDArray[np.bool_] = np.zeros(len(rows), dtype=bool)
+    if saturated is not None:
+        around = np.lib.stride_tricks.sliding_window_view(np.pad(saturated, 1), (3, 3))
+        clipped = np.asarray(around[rows, cols].reshape(len(rows), 9).any(axis=1))
+        k = np.flatnonzero(clipped)
+        clipped[k] = ~_clipped_near(mask, p.bgr_weights, rows[k] + r0, cols[k] + c0)
+    # The blur is measured where the sensor did not clip; where it clipped (nearly) every dot,
+    # by the censored fit of the brightest of them.
+    if np.count_nonzero(~clipped) >= _MIN_UNCLIPPED:
+        sigma = _spot_sigma(mean_var[~clipped], centre[~clipped])
+    else:
+        sigma = _clipped_sigma(
+            d, saturated, rows, cols, r, c, centre, ok, _spot_sigma(mean_var, centre)
+        )
+    spread2 = sigma * sigma + 1.0 + 1.0 / 12.0  # a spot's variance after the σ = 1 smoothing
+    if p.best_min_contrast > 0:
+        # A dot is compact: its smoothed peak falls off in every direction. The contrast
+        # against a ring 3 px out is predicted from the peak's own flatter curvature (a
+        # Gaussian of variance v falls to exp(−R²/2v) at R), so that neighbours overlapping a
+        # large spot on that ring do not fail it; an edge (the mirror's rim under flicker), a
+        # plateau or a smooth bump of a changing scene is flat along it. A flat top (a
+        # multimode beam) is flat too, but it falls to the background within a few of the
+        # image's spot sizes: the median of a ring there (:func:`_ring_contrast`) tells. A top
+        # the laser clipped has no curvature to judge by; it is a dot's (it saturated).
+        compact = max_var <= _RING_PX**2 / (-2.0 * math.log(1.0 - p.best_min_contrast))
+        compact |= clipped & np.isfinite(mean_var)
+        flat = np.flatnonzero(ok & ~compact)
+        if len(flat):
+            far = _ring_contrast(sm, rows[flat], cols[flat], centre[flat], math.sqrt(spread2))
+            compact[flat[far >= _FAR_CONTRAST]] = True
+        ok &= compact
+    rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
     if p.best_relative_peak > 0 and len(rows):
-        rad = p.best_relative_radius_px
+        rad = max(p.best_relative_radius_px, round(1.6 * math.sqrt(spread2)))
         disk = _disk(rad)
         src, off = sm, rad
         if min(rows.min(), cols.min()) < rad or rows.max() >= h - rad or cols.max() >= w - rad:
@@ -444,21 +683,324 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
             off = 0
         near = np.lib.stride_tricks.sliding_window_view(src, disk.shape)[rows - off, cols - off]
         ok = centre >= p.best_relative_peak * near[:, disk].max(axis=1)
-        rows, cols, centre = rows[ok], cols[ok], centre[ok]
+        rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
+    # Wide or clipped tops can hold several maxima of the 1 px smoothing: one spot. (The
+    # maxima on a clipped top are all next to its clipped pixels.)
+    some = np.arange(len(rows)) if sigma > _MATCHED_FROM_PX else np.flatnonzero(clipped)
+    if len(some) > 1:
+        reach = math.ceil(_SADDLE_REACH * math.sqrt(spread2))
+        ok = np.ones(len(rows), dtype=bool)
+        ok[some] = _one_spot(sm, r[some], c[some], centre[some], reach)
+        rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
     if len(rows) == 0:
         return _empty()
-    r, c = _refine(d, rows, cols)
+    # Dots the mirror's rim cuts (the housing outside the mirror is dark in the mask frame) are
+    # centred on the pixels that see them.
+    cut = _cut_by_rim(_laser_gray(mask, p.bgr_weights), rows + r0, cols + c0)
+    # Centres: the maximum of the matched-filtered image. The σ = 1 px smoothing is within a
+    # few per cent of the matched filter's efficiency for spots up to 1.5 px; larger spots get
+    # their own (candidates stay those of the 1 px smoothing, which keeps close spots apart).
+    smooth_px = 1.0
+    if sigma > _MATCHED_FROM_PX:
+        smooth_px = float(min(sigma, _SPOT_SIGMA_RANGE_PX[1]))
+        sm = cv2.GaussianBlur(d, (0, 0), smooth_px)
+        rm, cm, _, _, ok = _log_quadratic(sm, rows, cols)
+        r, c = np.where(ok, rm, r), np.where(ok, cm, c)  # else keep the 1 px filter's
+    filtered_var = sigma * sigma + smooth_px * smooth_px + 1.0 / 12.0
+    # A neighbour's light pulls a filtered maximum toward it: taken back to first order where
+    # the pull is small; where it is not, the dots are fitted (with their neighbours' light
+    # taken out, see spotfit), and so are all the dots of an image of large spots (whose
+    # neighbours always overlap) and every dot whose top the laser clipped (its maximum is
+    # wherever the scene under it is darkest; it starts from the middle of its clipped pixels).
+    if sigma > _FIT_ALL_FROM_PX:
+        fit = np.ones(len(r), dtype=bool)
+    else:
+        pull_r, pull_c, fit = _neighbour_pull(r, c, sm[rows, cols], filtered_var, (h, w))
+        r[~fit] -= pull_r[~fit]
+        c[~fit] -= pull_c[~fit]
+    if saturated is not None and clipped.any() and sigma > _FIT_ALL_FROM_PX:
+        k = np.flatnonzero(clipped)
+        rk, ck, area = _clipped_middle(saturated, rows[k], cols[k], _CLIPPED_HALF_PX)
+        wide = area >= _CLIPPED_FIT_PX
+        r[k[wide]], c[k[wide]] = rk[wide], ck[wide]
+    if fit.any():
+        k = np.flatnonzero(fit)
+        peak = centre[k] * spread2 / (sigma * sigma)  # the spot's own peak from the smoothed
+        # Fitted on the subtracted image: near large, dense spots the local background
+        # (a min filter) holds their light; each fit has its own plane for what is left.
+        fr, fc, _, _ = spotfit.fit_spots(
+            sub, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k])
+        )
+        moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5  # a fit that wandered off keeps its start
+        r[k[moved]], c[k[moved]] = fr[moved], fc[moved]
+    if cut.any():
+        k = np.flatnonzero(cut)
+        r[k], c[k] = _refine(d, rows[k], cols[k])
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
 
 
+def _ring_contrast(
+    sm: NDArray,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    top: NDArray,
+    spot_px: float,
+) -> NDArray[np.float64]:
+    """1 − (the median of 8 points on a ring :data:`_FAR_RING` image spot sizes ``spot_px``
+    out, 3 to 10 px) / the peak: how far each peak falls within a few spot sizes (up to 3 of
+    the 8 points may fall on neighbours)."""
+    radius = min(max(_FAR_RING * spot_px, 3.0), 10.0)
+    pad = math.ceil(radius) + 1
+    big = cv2.copyMakeBorder(sm, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    ang = np.arange(8) * (math.pi / 4.0)
+    ring = np.stack(
+        [
+            _bilinear(big, rows + pad + radius * math.sin(a), cols + pad + radius * math.cos(a))
+            for a in ang
+        ],
+        axis=1,
+    )
+    return np.asarray(1.0 - np.median(ring, axis=1) / np.maximum(top, 1e-6), dtype=np.float64)
+
+
+_Candidates = tuple[
+    NDArray[np.intp],
+    NDArray[np.intp],
+    NDArray,
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.bool_],
+]
+
+
+def _take(
+    ok: NDArray[np.bool_],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    centre: NDArray,
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    clipped: NDArray[np.bool_],
+) -> _Candidates:
+    """The candidates ``ok`` keeps: peak pixel, smoothed peak, sub-pixel centre, clipped."""
+    return rows[ok], cols[ok], centre[ok], r[ok], c[ok], clipped[ok]
+
+
+def _clipped_middle(
+    saturated: NDArray[np.bool_],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    half_px: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+    """The centroid (row, col) of the clipped pixels within ``half_px`` of each clipped dot's
+    peak pixel (a clipped top is point-symmetric about the dot's centre, as its clipped pixels
+    are), and how many there are. A dot whose clipped pixels reach its window's edge (a top
+    wider than the window, or a neighbour's) gets count 0."""
+    k = 2 * half_px + 1
+    pad = np.pad(saturated, half_px)
+    win = np.lib.stride_tricks.sliding_window_view(pad, (k, k))[rows, cols]  # (n, k, k)
+    count = win.sum(axis=(1, 2))
+    off = np.arange(-half_px, half_px + 1, dtype=np.float64)
+    safe = np.maximum(count, 1)
+    r = rows + (win.sum(axis=2) @ off) / safe
+    c = cols + (win.sum(axis=1) @ off) / safe
+    edge = win[:, 0, :].any(axis=1) | win[:, -1, :].any(axis=1)
+    edge |= win[:, :, 0].any(axis=1) | win[:, :, -1].any(axis=1)
+    return r, c, np.where(edge, 0, count)
+
+
+def _one_spot(
+    sm: NDArray,
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    top: NDArray,
+    reach_px: int,
+) -> NDArray[np.bool_]:
+    """(n,) False for maxima that are only a bump on a brighter one's top: two maxima at most
+    ``reach_px`` apart (per axis) are two dots only if the smoothed image ``sm`` dips between
+    them — somewhere on the segment (at ¼, ½ and ¾) below (1 − :data:`_SADDLE_DEPTH`) of the
+    dimmer one. Two equal Gaussian spots 2.5 filtered sigmas apart dip by 12 %; the maxima
+    a clipped, flat or grainy top breaks into do not."""
+    keep = np.ones(len(r), dtype=bool)
+    i, j = spotfit.near_pairs(r, c, reach_px, sort=False)
+    sel = (top[i] < top[j]) | ((top[i] == top[j]) & (i > j))  # i: the dimmer of the pair
+    i, j = i[sel], j[sel]
+    if len(i) == 0:
+        return keep
+    low = np.full(len(i), np.inf)
+    for t in (0.25, 0.5, 0.75):
+        low = np.minimum(low, _bilinear(sm, r[i] + t * (r[j] - r[i]), c[i] + t * (c[j] - c[i])))
+    keep[i[low >= (1.0 - _SADDLE_DEPTH) * top[i]]] = False
+    return keep
+
+
+def _bilinear(img: NDArray, r: NDArray, c: NDArray) -> NDArray:
+    """``img`` at sub-pixel (row, col) points inside it, bilinear."""
+    r = np.clip(r, 0.0, img.shape[0] - 1.001)
+    c = np.clip(c, 0.0, img.shape[1] - 1.001)
+    r0, c0 = r.astype(np.intp), c.astype(np.intp)
+    fr, fc = r - r0, c - c0
+    top = img[r0, c0] * (1.0 - fc) + img[r0, c0 + 1] * fc
+    bottom = img[r0 + 1, c0] * (1.0 - fc) + img[r0 + 1, c0 + 1] * fc
+    return np.asarray(top * (1.0 - fr) + bottom * fr)
+
+
+def _cut_by_rim(
+    mask_gray: NDArray, rows: NDArray[np.intp], cols: NDArray[np.intp]
+) -> NDArray[np.bool_]:
+    """(n,) dots with a pixel of the dark housing (mask frame below :data:`_HOUSING_GRAY`)
+    within 2 px: their light is cut by the mirror's rim. Peaks lie ≥ 3 px inside the image."""
+    if len(rows) == 0:
+        return np.zeros(0, dtype=bool)
+    near = np.lib.stride_tricks.sliding_window_view(mask_gray, (5, 5))[rows - 2, cols - 2]
+    return np.asarray(near.reshape(len(rows), 25).min(axis=1) < _HOUSING_GRAY)
+
+
+def _neighbour_pull(
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    top: NDArray,
+    filtered_var: float,
+    shape: tuple[int, int],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """How far each dot's filtered maximum is pulled by its neighbours' light (row, col, px),
+    and which dots (with the neighbours pulling them) this does not resolve, to be fitted.
+
+    For Gaussian spots of filtered variance v the filtered image is Σ_j A_j e_j(x) with
+    e_j(x) = exp(−|x − c_j|²/2v); at the maximum p_i of dot i its gradient vanishes and its
+    value is the smoothed peak:
+
+        Σ_j A_j e_j(p_i) (c_j − p_i) = 0,   Σ_j A_j e_j(p_i) = top_i,
+
+    solved for every centre c_i and amplitude A_i by fixed-point iteration
+    (:data:`_PULL_ITERATIONS`, from c = p, A = top: the first step is the first-order pull
+    Σ_j (top_j / top_i) e_j(p_i) (p_j − p_i)). A dot whose centre is still moving, or moved
+    more than :data:`_PULL_MAX_PX`, is left to the fit. A box filter over the dots' pixels
+    first finds those with another dot within the distance where a twice as bright neighbour
+    would move it by :data:`_COUPLING_PX` (:func:`_pull_reach_px`); only those are paired, so
+    well separated dots cost one filter.
+    """
+    n = len(r)
+    pull_r, pull_c = np.zeros(n), np.zeros(n)
+    unresolved = np.zeros(n, dtype=bool)
+    if n < 2:
+        return pull_r, pull_c, unresolved
+    half = round(_pull_reach_px(filtered_var))
+    ri = np.clip(np.rint(r).astype(np.intp), 0, shape[0] - 1)
+    ci = np.clip(np.rint(c).astype(np.intp), 0, shape[1] - 1)
+    at = np.zeros(shape, dtype=np.uint8)
+    at[ri, ci] = 1  # filtered maxima are ≥ 2 px apart: no two share a pixel
+    k = 2 * half + 1
+    near = cv2.boxFilter(at, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    close = np.flatnonzero(near[ri, ci] > 1)  # (uint8 saturates at 255: still > 1)
+    if len(close) < 2:
+        return pull_r, pull_c, unresolved
+    i, j = spotfit.near_pairs(r[close], c[close], half + 1, sort=False)
+    if len(i) == 0:
+        return pull_r, pull_c, unresolved
+    m = len(close)
+    pr, pc = r[close], c[close]
+    t = np.abs(top[close]).astype(np.float64)
+    t = np.maximum(t, 1e-6)
+    cr, cc, amp = pr.copy(), pc.copy(), t.copy()
+    inv2v = 1.0 / (2.0 * filtered_var)
+    step = np.zeros(m)
+    for _ in range(_PULL_ITERATIONS):
+        dr, dc = cr[j] - pr[i], cc[j] - pc[i]
+        lj = amp[j] * np.exp(-(dr * dr + dc * dc) * inv2v)  # neighbour j's light at p_i
+        own = np.exp(-((cr - pr) ** 2 + (cc - pc) ** 2) * inv2v)
+        sum_l = np.bincount(i, weights=lj, minlength=m)
+        sum_r = np.bincount(i, weights=lj * dr, minlength=m)
+        sum_c = np.bincount(i, weights=lj * dc, minlength=m)
+        a_own = np.maximum(amp * own, 0.05 * t)
+        new_r, new_c = pr - sum_r / a_own, pc - sum_c / a_own
+        step = np.hypot(new_r - cr, new_c - cc)
+        cr, cc = new_r, new_c
+        amp = np.maximum(t - sum_l, 0.05 * t) / np.maximum(own, 1e-3)
+    pull_r[close], pull_c[close] = pr - cr, pc - cc
+    bad = (step > _COUPLING_PX) | (np.hypot(pr - cr, pc - cc) > _PULL_MAX_PX)
+    if bad.any():
+        hit = bad[i]
+        unresolved[close[i[hit]]] = True
+        unresolved[close[j[hit]]] = True
+    return pull_r, pull_c, unresolved
+
+
+def _pull_reach_px(filtered_var: float, ratio: float = 2.0) -> float:
+    """The distance beyond which a neighbour ``ratio`` times as bright no longer moves a
+    filtered maximum by :data:`_COUPLING_PX`."""
+    d = math.sqrt(filtered_var)  # the pull peaks at one filtered sigma, then falls
+    while ratio * d * math.exp(-d * d / (2.0 * filtered_var)) > _COUPLING_PX:
+        d += 0.1
+    return d
+
+
+def _local_maxima(
+    sm: NDArray,
+    threshold: float,
+    margin_px: int,
+    box: tuple[int, int, int, int],
+    shape: tuple[int, int],
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Local maxima (3x3) of ``sm`` above ``threshold`` at least ``margin_px`` inside the image
+    (``sm`` covers ``box`` = (r0, r1, c0, c1) of an image of ``shape``)."""
+    h, w = sm.shape
+    r0, r1, c0, c1 = box
+    peaks = sm >= cv2.dilate(sm, np.ones((3, 3), np.uint8))
+    peaks &= sm > threshold
+    m = margin_px
+    peaks[: max(m - r0, 0), :] = False
+    peaks[h - max(m - (shape[0] - r1), 0) :, :] = False
+    peaks[:, : max(m - c0, 0)] = False
+    peaks[:, w - max(m - (shape[1] - c1), 0) :] = False
+    flat = np.flatnonzero(peaks)  # (much faster than np.nonzero on a 2-D mask)
+    rows, cols = np.divmod(flat, w)
+    return rows, cols
+
+
+def _clipped_near(
+    base: NDArray,
+    weights: tuple[float, float, float],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+) -> NDArray[np.bool_]:
+    """(n,) whether the laser's channel of ``base`` reaches the sensor's largest value in the 3x3
+    pixels around each (row, col) — at least 1 px inside the image — (all False for float
+    images: no clip level)."""
+    if base.dtype.kind == "f" or len(rows) == 0:
+        return np.zeros(len(rows), dtype=bool)
+    gray = _laser_gray(base, weights)
+    top = np.iinfo(base.dtype).max
+    near = np.lib.stride_tricks.sliding_window_view(gray, (3, 3))[rows - 1, cols - 1]
+    return np.asarray(near.reshape(len(rows), 9).max(axis=1) >= top)
+
+
+def _saturated(
+    base: NDArray, weights: tuple[float, float, float], box: tuple[int, int, int, int]
+) -> NDArray[np.bool_] | None:
+    """Pixels of the box where the laser's channel of the base frame is clipped (the sensor's
+    largest value), or None where none is (and for images without a clip level: float)."""
+    if base.dtype.kind == "f":
+        return None
+    top = np.iinfo(base.dtype).max
+    r0, r1, c0, c1 = box
+    part = base[r0:r1, c0:c1]
+    if part.ndim == 3:
+        nz = np.flatnonzero(np.asarray(weights, dtype=np.float64))
+        clipped = np.any(part[:, :, nz] >= top, axis=2)
+        return clipped if clipped.any() else None
+    if cv2.minMaxLoc(part)[1] < top:
+        return None
+    return part >= top
+
+
+@functools.lru_cache(maxsize=16)
 def _disk(radius_px: int) -> NDArray[np.bool_]:
     """The (2r + 1)² boolean disk of cv2.MORPH_ELLIPSE: the neighbourhood of the relative test."""
     k = 2 * radius_px + 1
     return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dtype=bool)
 
 
-#: Eight points about 3 px from a peak, for the contrast test of the best method.
-_RING3 = ((-3, 0), (3, 0), (0, -3), (0, 3), (-2, -2), (-2, 2), (2, -2), (2, 2))
 #: Offsets of the 5x5 fitting window and its design matrix [1, r, c, r² + c²] (25, 4).
 _FIT_OFF = np.arange(-2, 3)
 _FIT_R, _FIT_C = (
@@ -472,14 +1014,15 @@ _FIT_XX = (_FIT_X[:, :, None] * _FIT_X[:, None, :]).reshape(25, 16)
 def _refine(
     d: NDArray[np.float32], rows: NDArray[np.intp], cols: NDArray[np.intp]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Sub-pixel centres: an isotropic Gaussian fitted to the 5x5 pixels around each peak.
+    """Sub-pixel centres of dots the mirror's rim cuts: an isotropic Gaussian fitted to the
+    5x5 pixels around each peak that see it.
 
     ``ln I = a + b·r + c·c + e·(r² + c²)`` solved by least squares weighted by I² (the log's
     noise is ~σ/I; pixels below 5 % of the window's brightest are left out), all dots at once
     through batched 4x4 normal equations. The centre is (−b/2e, −c/2e), kept within ±1 px of
-    the peak pixel. On clean rendered dots this reaches ~1.5× the Cramér–Rao bound; a 5x5
-    centroid is 3× worse (truncation pulls it to the pixel centre), the per-axis 3-point
-    Gaussian 1.8× worse (measured while choosing; see docs/benchmarks/detection.md).
+    the peak pixel. A Gaussian's logarithm is quadratic on whatever part of it is seen, so the
+    cut does not move the centre (a smoothed image would spread the cut into it); the detector
+    used it for every dot before the spot models (~1.5x the Cramér–Rao bound on round spots).
     """
     windows = np.lib.stride_tricks.sliding_window_view(d, (5, 5))
     # Weights and logs in float32 (ample for 0.01 px; the sums below are float64).

@@ -4,6 +4,7 @@ Interface::
 
     match_dots(calib, dots1 (N, 3), dots2 (M, 3), method="best" | "thesis") -> (K, 4) r1 c1 r2 c2
     match_dots_indexed(...) -> (pixels (K, 4), idx1 (K,), idx2 (K,))
+    match_best_triples(calib, dots1, dots2) -> TripleMatch (with each pair's beam and depth)
 
 ``dots`` rows are (row_px, col_px, strength) as :func:`omnid.core.detect.detect_dots` gives
 them. An empty input gives an empty (0, 4) result.
@@ -16,26 +17,34 @@ them. An empty input gives an empty (0, 4) result.
     above the floor are searched with the integer n of eq. 6.16, n = 0, 1, 2, ..., removing the
     matched centres as n grows; dots left unmatched are dropped as noise.
 
-``best``
-    A one-to-one assignment with the calibrated model (rotation undone, each camera's f/K):
+``best`` — the laser as a third view
+    Calibration learned every beam of the laser (:class:`~omnid.core.laser.LaserModel`); each
+    beam images in both cameras as a straight track, affine in the inverse depth u = 1/Z:
+    m(u) = α_k + β_k·u with m = (x1, y1, x2, y2) the ideal offsets. A *candidate* is a triple
+    (camera-1 dot a, camera-2 dot b, beam k):
 
-    * rows agree — the row slopes X/Z of both rays must agree within ``row_tol_px``; this is
-      where the rays of the two cameras meet, so it is also the ray-residual test;
-    * the disparity window — D/Z between a drop-off ``dropoff_depth_mm`` below the floor and an
-      obstacle top at ``min_depth_mm`` below the mirrors;
-    * the laser lattice — the mean lateral slope (e1 + e2)/2 = Y/Z of a true pair is the slope
-      of a laser ray (the source sits midway between the mirrors), so a pairing shifted by one
-      lattice step falls between rays and is rejected;
-    * no phantom drop-off — a pair read under the floor needs a neighbour at its depth (a dot
-      whose partner is hidden pairs with a nearer dot's image beside it, at an occluder's edge);
-    * the remaining ambiguity — a pairing shifted by two lattice steps describes another flat
-      surface at a wrong depth (SPEC §2). Along each laser row the assignment is a chain
-      ordered by laser ray, camera-1 column and camera-2 column (the order of dots along a
-      row); of all such chains the one matching the *most* dots wins (a shifted chain always
-      leaves dots at its ends unmatched), and among equally long ones the nearest the floor
-      (the thesis' floor-first rule), with the lattice, row and brightness agreement next.
+    1. stereo pairs (a, b) whose rays can meet (rows agree; a depth between ``min_depth_mm``
+       and ``dropoff_depth_mm`` under the floor) — no laser needed;
+    2. the beams such a point could lie on: the pair's point projected from the source onto the
+       floor lands near beam k's floor point (within ``gate_sigma`` of its uncertainty);
+    3. its least-squares u along the beam and the residual r (4 measurements, 1 unknown:
+       χ² = |r|²/σ_t² with 3 degrees of freedom); σ_t combines the detector's noise (the
+       calibration's measured scatter) with the track's own uncertainty (source and floor-point
+       errors, growing away from the floor: much larger when the source is unknown);
+    4. its weight: the log-likelihood ratio of "a and b are beam k's dot" against "a and b are
+       unpaired detections and beam k is not seen":
+       w = log((1−p)/p) − log ρ₁ρ₂ − 2 log(2πσ_t²) − log(L/(√(2π)σ_t)) − χ²/2, where p is
+       ``beam_missing_probability``, ρ_i the density of unpaired detections per px²
+       (``unpaired_fraction`` of the dots spread over the disk) and L the track's length in the
+       4-D image space (the depth's prior is uniform along it).
 
-    It is solved exactly per row by dynamic programming, vectorised over all rows at once.
+    The answer is the one-to-one set of triples (each a, b and k at most once) of largest total
+    weight — maximum likelihood — found exactly: the conflict graph falls apart into small
+    connected components, each solved by branch and bound (``exact_node_limit`` caps the search;
+    :class:`TripleMatch` counts components where it was hit). No pattern law, no lattice, no
+    per-scene rule: where the geometry leaves two readings (a source nearly in the mirror plane
+    and a nearly regular pattern), the reading that explains more dots with smaller residuals
+    wins, and the rest stays unmatched.
 """
 
 from __future__ import annotations
@@ -50,55 +59,65 @@ from numpy.typing import NDArray
 from omnid.config import require
 
 if TYPE_CHECKING:
-    from omnid.core.calibration import Calibration, LaserLattice
-    from omnid.core.geometry import MirrorCamera
+    from omnid.core.calibration import Calibration
+    from omnid.core.geometry import StereoRig
+    from omnid.core.laser import LaserModel
 
 MatchMethod = Literal["thesis", "best"]
-_NO_RAY = -(2**40)  # "ray not known" (ray indices run negative too)
 
 __all__ = [
+    "BeamTracks",
     "MatchMethod",
     "MatchSettings",
     "ThesisPolynomials",
+    "TripleMatch",
     "col_design",
     "fit_thesis_polynomials",
+    "match_best_triples",
     "match_dots",
     "match_dots_indexed",
+    "match_triples",
     "predict_thesis",
+    "stereo_candidates",
 ]
 
 
 @dataclass(frozen=True)
 class MatchSettings:
-    """Tolerances and the height window of the matchers (px, mm)."""
+    """The matchers' few parameters (px, mm, probabilities), each with where its value comes from."""
 
-    row_tol_px: float = 1.5  # best: rows (ray slopes X/Z) of a pair must agree within this
     min_depth_mm: float = 250.0  # highest obstacle top considered: this far below the mirrors
     dropoff_depth_mm: float = 400.0  # deepest drop-off considered: this far below the floor
-    lattice_tol: float = 0.25  # best: mid slope off a laser ray by at most this × lattice step
-    double_dot_ratio: float = 1.35  # best: brighter than this × median = two merged dots
-    anchor_margin_px: float = 5.0  # best: a row end is the lattice end when one more dot
-    # would lie this far inside the mirror disk
-    dropoff_min_mm: float = 20.0  # best: a pair read this far under the floor (and 5 σ of
-    # the disparity scatter) needs a neighbour (next ray of its row or same ray of the next
-    # row) at the same depth
-    phantom_margin_mm: float = 100.0  # best: a dot read this much nearer than a lower row's
-    # dot of the same laser column, at the floor's shifted depth, is refused
-    # best: a step along a row counts as one ray when within this × lattice step; None: from
-    # the calibration's dot scatter (5·√2·σ over the step in px, at least 0.05)
-    walk_tol: float | None = None
+    # best: a triple whose residual exceeds this many σ per degree of freedom is no candidate
+    # (χ² < 3·gate²: 5σ leaves a true triple out with probability ~1e-12 under the noise model)
+    gate_sigma: float = 5.0
+    # best: rows of a pair may differ by this much more than the noise explains, px (the
+    # calibration's rotation error at the disk's rim: 0.02° × 235 px ≈ 0.1 px, doubled)
+    row_slack_px: float = 0.2
+    # best: share of a camera's detections that have no partner (seen by one camera only at
+    # the rims and behind obstacles, ghosts); measured over the random rigs by
+    # tools/eval_rigs.py: 3-8 % of the dots
+    unpaired_fraction: float = 0.05
+    # best: probability that a calibrated beam shows no pair in a capture (hidden, out of
+    # view at its depth); it only shifts every weight by the same log-odds
+    beam_missing_probability: float = 0.3
+    # best: search nodes per conflict component before the best found is taken
+    exact_node_limit: int = 20000
     thesis_search_px: float = 1.0  # thesis: neighbourhood searched for each n of eq. 6.16
     thesis_max_n: int | None = None  # thesis: upper limit of n; None = from min_depth_mm
 
     def __post_init__(self) -> None:
-        require(self.row_tol_px > 0, "row_tol_px", "must be positive")
         require(self.min_depth_mm > 0, "min_depth_mm", "must be positive")
         require(self.dropoff_depth_mm >= 0, "dropoff_depth_mm", "must not be negative")
-        require(0 < self.lattice_tol < 0.5, "lattice_tol", "must be in (0, 0.5)")
-        require(self.anchor_margin_px >= 0, "anchor_margin_px", "must not be negative")
-        require(self.walk_tol is None or 0 < self.walk_tol < 0.5, "walk_tol", "must be in (0, 0.5)")
-        require(self.dropoff_min_mm > 0, "dropoff_min_mm", "must be positive")
-        require(self.phantom_margin_mm > 0, "phantom_margin_mm", "must be positive")
+        require(self.gate_sigma > 1, "gate_sigma", "must exceed 1")
+        require(self.row_slack_px >= 0, "row_slack_px", "must not be negative")
+        require(0 < self.unpaired_fraction < 1, "unpaired_fraction", "must be in (0, 1)")
+        require(
+            0 < self.beam_missing_probability < 1,
+            "beam_missing_probability",
+            "must be in (0, 1)",
+        )
+        require(self.exact_node_limit >= 1, "exact_node_limit", "must be at least 1")
         require(self.thesis_search_px > 0, "thesis_search_px", "must be positive")
         require(self.thesis_max_n is None or self.thesis_max_n >= 0, "thesis_max_n", "must be >= 0")
 
@@ -301,668 +320,400 @@ def _match_thesis(
 
 
 # --------------------------------------------------------------------------------------------
-# Our matcher
+# Our matcher: the laser as a third view
 # --------------------------------------------------------------------------------------------
+
+
+def stereo_candidates(
+    rig: StereoRig,
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    row_tol_px: float,
+    min_depth_mm: float = 250.0,
+    max_depth_mm: float | None = None,
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Index pairs (i, j) whose rays can meet: rows agree (ray slopes X/Z within
+    ``row_tol_px``) and the disparity D/Z puts the point between ``min_depth_mm`` and
+    ``max_depth_mm`` (default: 400 mm under the floor) below the mirrors."""
+    if len(d1) == 0 or len(d2) == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    f = 0.5 * (rig.cam1.f_over_k_px + rig.cam2.f_over_k_px)
+    p1 = rig.cam1.ray_slopes(d1[:, :2])
+    p2 = rig.cam2.ray_slopes(d2[:, :2])
+    i, j = _candidates_by_row(p1[:, 0], p2[:, 0], row_tol_px / f)
+    disp = p1[i, 1] - p2[j, 1]  # D/Z
+    deep = max_depth_mm if max_depth_mm is not None else rig.floor_depth_mm + 400.0
+    ok = (disp >= rig.baseline_mm / deep) & (disp <= rig.baseline_mm / min_depth_mm)
+    return i[ok].astype(np.intp), j[ok].astype(np.intp)
+
+
+@dataclass(frozen=True)
+class BeamTracks:
+    """Each beam's image in both cameras as an affine function of the inverse depth u = 1/Z:
+    m(u) = alpha + beta·u with m = (x1, y1, x2, y2) ideal offsets, px (see
+    :class:`~omnid.core.laser.LaserModel`), and what makes the tracks uncertain."""
+
+    alpha: NDArray[np.float64]  # (K, 4) px
+    beta: NDArray[np.float64]  # (K, 4) px·mm
+    slope: NDArray[np.float64]  # (K, 2) s
+    cross_mm: NDArray[np.float64]  # (K, 2) c
+    floor_sigma_mm: NDArray[np.float64]  # (K,)
+    source_mm: NDArray[np.float64]  # (3,)
+    source_sigma_mm: NDArray[np.float64]  # (3,)
+    floor_depth_mm: float
+    f_px: NDArray[np.float64]  # (4,) F of each coordinate's camera
+    x_order: NDArray[np.intp]  # beams sorted by floor X
+    floor_x_sorted: NDArray[np.float64]
+    floor_mm: NDArray[np.float64]  # (K, 3)
+
+    @classmethod
+    def from_model(cls, rig: StereoRig, laser: LaserModel) -> BeamTracks:
+        s, c = laser.slopes()
+        f1, f2 = rig.cam1.f_over_k_px, rig.cam2.f_over_k_px
+        y1, y2 = rig.cam1.y_mm, rig.cam2.y_mm
+        alpha = np.column_stack([-f1 * s[:, 0], f1 * s[:, 1], -f2 * s[:, 0], f2 * s[:, 1]])
+        beta = np.column_stack(
+            [-f1 * c[:, 0], f1 * (c[:, 1] - y1), -f2 * c[:, 0], f2 * (c[:, 1] - y2)]
+        )
+        order = np.argsort(laser.floor_mm[:, 0], kind="stable").astype(np.intp)
+        return cls(
+            alpha,
+            beta,
+            s,
+            c,
+            np.asarray(laser.floor_sigma_mm),
+            np.asarray(laser.source_mm, dtype=np.float64),
+            np.asarray(laser.source_sigma_mm, dtype=np.float64),
+            laser.floor_depth_mm,
+            np.array([f1, f1, f2, f2]),
+            order,
+            laser.floor_mm[order, 0],
+            np.asarray(laser.floor_mm),
+        )
+
+    def slope_sigma(self, beam: NDArray[np.intp], u: NDArray[np.float64]) -> NDArray:
+        """(N,) 1-σ of the beam's slope s + c·u at inverse depth u (source and floor point
+        errors; see :class:`~omnid.core.laser.LaserModel`), per axis."""
+        H = self.floor_depth_mm
+        oz = self.source_mm[2]
+        so = self.source_sigma_mm
+        s2 = np.sum(self.slope[beam] ** 2, axis=1)
+        lever_o = (u * H - 1.0) / (H - oz)
+        lever_p = (1.0 - oz * u) / (H - oz)
+        var = lever_o**2 * (0.5 * (so[0] ** 2 + so[1] ** 2) + s2 * so[2] ** 2)
+        var += (lever_p * self.floor_sigma_mm[beam]) ** 2
+        return np.sqrt(var)
+
+
+def _tracks(calib_rig: StereoRig, laser: LaserModel) -> BeamTracks:
+    key = (id(laser), calib_rig)
+    hit = _TRACK_CACHE.get(key)
+    if hit is not None and hit[0] is laser:
+        return hit[1]
+    tr = BeamTracks.from_model(calib_rig, laser)
+    if len(_TRACK_CACHE) > 8:
+        _TRACK_CACHE.clear()
+    _TRACK_CACHE[key] = (laser, tr)
+    return tr
+
+
+_TRACK_CACHE: dict[tuple[int, StereoRig], tuple[LaserModel, BeamTracks]] = {}
+
+
+@dataclass(frozen=True)
+class TripleMatch:
+    """The chosen (camera-1 dot, camera-2 dot, beam) triples and how they fit.
+
+    i1, i2, beam    (K,) indices into dots1, dots2 and the laser model's beams
+    inv_depth       (K,) u = 1/Z of each triple's least-squares fit, 1/mm
+    residual_px     (K,) rms residual per image coordinate of the fit, px
+    sigma_px        (K,) the track's total 1-σ per coordinate (pixel noise and model), px
+    candidates      triples considered (χ² under the gate)
+    components      conflict components solved; ``largest`` triples in the largest one;
+                    ``inexact`` components whose search hit its node limit (greedy result)
+    """
+
+    i1: NDArray[np.intp]
+    i2: NDArray[np.intp]
+    beam: NDArray[np.intp]
+    inv_depth: NDArray[np.float64]
+    residual_px: NDArray[np.float64]
+    sigma_px: NDArray[np.float64]
+    candidates: int = 0
+    components: int = 0
+    largest: int = 0
+    inexact: int = 0
+
+
+def _empty_triples() -> TripleMatch:
+    z = np.zeros(0, np.intp)
+    f = np.zeros(0)
+    return TripleMatch(z, z, z, f, f, f)
+
+
+def _beams_near(
+    tr: BeamTracks, xy: NDArray[np.float64], radius: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """(query, beam) for every beam whose floor point lies within ``radius`` of ``xy``."""
+    lo = np.searchsorted(tr.floor_x_sorted, xy[:, 0] - radius, side="left")
+    hi = np.searchsorted(tr.floor_x_sorted, xy[:, 0] + radius, side="right")
+    q, pos = _expand_ranges(lo, hi)
+    k = tr.x_order[pos]
+    d = np.hypot(tr.floor_mm[k, 0] - xy[q, 0], tr.floor_mm[k, 1] - xy[q, 1])
+    ok = d <= radius[q]
+    return q[ok], k[ok]
+
+
+def match_triples(
+    rig: StereoRig,
+    laser: LaserModel,
+    sigma_px: float,
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    settings: MatchSettings | None = None,
+) -> TripleMatch:
+    """The most likely set of (camera-1 dot, camera-2 dot, beam) triples (module docstring)."""
+    from omnid.core.triangulate import best_design_matrix
+
+    s = settings or MatchSettings()
+    d1, d2 = _as_dots(d1), _as_dots(d2)
+    if len(d1) == 0 or len(d2) == 0 or len(laser) == 0:
+        return _empty_triples()
+    tr = _tracks(rig, laser)
+    H = rig.floor_depth_mm
+    sig = float(sigma_px)
+    # 1. stereo pairs whose rays can meet (the rows' test needs no laser model)
+    i, j = stereo_candidates(
+        rig,
+        d1,
+        d2,
+        s.gate_sigma * math.sqrt(2.0) * sig + s.row_slack_px,
+        s.min_depth_mm,
+        H + s.dropoff_depth_mm,
+    )
+    if len(i) == 0:
+        return _empty_triples()
+    m = np.hstack([rig.cam1.ideal_offsets(d1[i, :2]), rig.cam2.ideal_offsets(d2[j, :2])])
+    A = best_design_matrix(rig)
+    theta = m @ np.linalg.pinv(A).T  # (p, q, u) of each pair
+    u_st = theta[:, 2]
+    # 2. the beams such a point could lie on: project it from the source onto the floor
+    o = tr.source_mm
+    z = 1.0 / u_st
+    lever = (H - o[2]) / (z - o[2])
+    xy = o[None, :2] + (theta[:, :2] * z[:, None] - o[None, :2]) * lever[:, None]
+    f = float(np.mean(tr.f_px))
+    s_abs = np.hypot(theta[:, 0], theta[:, 1])
+    sz = z * z * math.sqrt(2.0) * sig / (f * rig.baseline_mm)
+    sig_q = lever * np.hypot(sig * z / f, s_abs * sz)
+    so = tr.source_sigma_mm
+    sig_o = np.abs(lever - 1.0) * np.sqrt(0.5 * (so[0] ** 2 + so[1] ** 2) + s_abs**2 * so[2] ** 2)
+    radius = s.gate_sigma * np.sqrt(sig_q**2 + sig_o**2 + np.max(tr.floor_sigma_mm) ** 2) + 1.0
+    pq, k = _beams_near(tr, xy, radius)
+    if len(pq) == 0:
+        return _empty_triples()
+    # 3. each triple's least-squares depth along its beam and residual (3 degrees of freedom)
+    mm = m[pq]
+    al, be = tr.alpha[k], tr.beta[k]
+    bb = np.sum(be * be, axis=1)
+    u_lo = 1.0 / (H + s.dropoff_depth_mm)
+    u_hi = 1.0 / max(s.min_depth_mm, o[2] + 1.0)
+    u = np.clip(np.sum((mm - al) * be, axis=1) / bb, u_lo, u_hi)
+    r = mm - al - be * u[:, None]
+    sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)
+    chi2 = np.sum(r * r, axis=1) / (sig_t * sig_t)
+    # 4. weight: log-likelihood ratio of the triple against leaving its dots unpaired and its
+    # beam unseen (module docstring); only triples worth taking enter the assignment
+    n1, n2 = len(d1), len(d2)
+    area1 = math.pi * rig.cam1.disk_radius_px**2
+    area2 = math.pi * rig.cam2.disk_radius_px**2
+    rho1 = max(s.unpaired_fraction * n1, 1.0) / area1
+    rho2 = max(s.unpaired_fraction * n2, 1.0) / area2
+    track_len = np.sqrt(bb) * (u_hi - u_lo)
+    const = (
+        math.log((1.0 - s.beam_missing_probability) / s.beam_missing_probability)
+        - math.log(rho1 * rho2)
+        - 2.0 * np.log(2.0 * math.pi * sig_t**2)
+        - np.log(np.maximum(track_len, sig_t) / (math.sqrt(2.0 * math.pi) * sig_t))
+    )
+    w = const - 0.5 * chi2
+    keep = (w > 0) & (chi2 < s.gate_sigma**2 * 3.0)
+    a_ids, b_ids, k_ids = i[pq[keep]], j[pq[keep]], k[keep]
+    w, u, chi2, sig_t = w[keep], u[keep], chi2[keep], sig_t[keep]
+    if len(w) == 0:
+        return _empty_triples()
+    chosen, comps, largest, inexact = _max_weight_packing(
+        a_ids, b_ids + n1, k_ids + n1 + n2, w, s.exact_node_limit
+    )
+    return TripleMatch(
+        a_ids[chosen].astype(np.intp),
+        b_ids[chosen].astype(np.intp),
+        k_ids[chosen].astype(np.intp),
+        u[chosen],
+        np.sqrt(chi2[chosen] / 3.0) * sig_t[chosen],
+        sig_t[chosen],
+        len(w),
+        comps,
+        largest,
+        inexact,
+    )
+
+
+def _components(nodes: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Connected-component label (T,) of triples that share a node (rows of ``nodes`` (T, 3))."""
+    t = len(nodes)
+    n_nodes = int(nodes.max()) + 1
+    lab = np.arange(t, dtype=np.int64)
+    while True:
+        node_min = np.full(n_nodes, t, dtype=np.int64)
+        for c in range(3):
+            np.minimum.at(node_min, nodes[:, c], lab)
+        new = np.minimum.reduce([node_min[nodes[:, c]] for c in range(3)])
+        new = new[new]  # pointer jumping: follow labels to their roots
+        if np.array_equal(new, lab):
+            return lab
+        lab = new
+
+
+def _max_weight_packing(
+    a: NDArray[np.int64],
+    b: NDArray[np.int64],
+    k: NDArray[np.int64],
+    w: NDArray[np.float64],
+    node_limit: int,
+) -> tuple[NDArray[np.intp], int, int, int]:
+    """The set of triples of largest total weight using each node (a, b or k) at most once.
+
+    Split into connected components of the conflict graph; a lone triple is taken; a small
+    component (≤ ``_SMALL`` triples) is solved exactly by branch and bound, the larger ones all
+    together as one integer program (HiGHS through :func:`scipy.optimize.milp`, exact; its
+    LP relaxation is nearly always integral here). Returns (chosen indices, components,
+    largest component, components not proven optimal).
+    """
+    nodes = np.column_stack([a, b, k]).astype(np.int64)
+    lab = _components(nodes)
+    order = np.argsort(lab, kind="stable")
+    lab_s = lab[order]
+    starts = np.flatnonzero(np.concatenate([[True], lab_s[1:] != lab_s[:-1]]))
+    sizes = np.diff(np.concatenate([starts, [len(lab_s)]]))
+    chosen = [order[starts[sizes == 1]]]
+    inexact = 0
+    big = []
+    for st, sz in zip(starts[sizes > 1], sizes[sizes > 1], strict=True):
+        idx = order[st : st + sz]
+        if sz > _SMALL:
+            big.append(idx)
+            continue
+        sel, exact = _solve_component(nodes[idx], w[idx], node_limit)
+        chosen.append(idx[sel])
+        inexact += 0 if exact else 1
+    if big:
+        idx = np.concatenate(big)
+        sel, exact = _solve_milp(nodes[idx], w[idx])
+        chosen.append(idx[sel])
+        inexact += 0 if exact else len(big)
+    out = np.concatenate(chosen).astype(np.intp)
+    return out, len(sizes), int(sizes.max()), inexact
+
+
+#: Components up to this many triples are searched exhaustively (branch and bound in Python,
+#: microseconds); larger ones go to the integer program.
+_SMALL = 10
+
+
+def _solve_milp(nodes: NDArray[np.int64], w: NDArray[np.float64]) -> tuple[NDArray[np.intp], bool]:
+    """Maximum-weight packing as a 0/1 integer program: max Σ w·x, each node in ≤ 1 chosen."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+    from scipy.sparse import csr_array
+
+    t = len(w)
+    uniq, inv = np.unique(nodes.ravel(), return_inverse=True)
+    rows = inv.reshape(-1, 3)
+    A = csr_array(
+        (np.ones(3 * t), (rows.ravel(), np.repeat(np.arange(t), 3))), shape=(len(uniq), t)
+    )
+    res = milp(
+        -w,
+        constraints=LinearConstraint(A, -np.inf, 1.0),
+        integrality=np.ones(t),
+        bounds=Bounds(0.0, 1.0),
+        options={"time_limit": 1.0},
+    )
+    if res.x is None:  # no solution in time: the greedy packing
+        return _greedy(nodes, w), False
+    return np.flatnonzero(res.x > 0.5).astype(np.intp), bool(res.status == 0)
+
+
+def _greedy(nodes: NDArray[np.int64], w: NDArray[np.float64]) -> NDArray[np.intp]:
+    used: set[int] = set()
+    out = []
+    for t in np.argsort(-w, kind="stable"):
+        nd = {int(v) for v in nodes[t]}
+        if not used & nd:
+            used |= nd
+            out.append(int(t))
+    return np.array(out, dtype=np.intp)
+
+
+def _solve_component(
+    nodes: NDArray[np.int64], w: NDArray[np.float64], node_limit: int
+) -> tuple[NDArray[np.intp], bool]:
+    """Exact maximum-weight packing of one small component (branch and bound)."""
+    order = np.argsort(-w, kind="stable")
+    nd = [tuple(int(v) for v in nodes[t]) for t in order]
+    ww = [float(w[t]) for t in order]
+    n = len(ww)
+    # greedy start
+    used: set[int] = set()
+    greedy = []
+    for t in range(n):
+        if not (used & set(nd[t])):
+            used.update(nd[t])
+            greedy.append(t)
+    best_val = sum(ww[t] for t in greedy)
+    best = list(greedy)
+    suffix = [0.0] * (n + 1)
+    for t in range(n - 1, -1, -1):
+        suffix[t] = suffix[t + 1] + ww[t]
+    count = 0
+    exact = True
+    stack: list[tuple[int, frozenset[int], float, tuple[int, ...]]] = [(0, frozenset(), 0.0, ())]
+    while stack:
+        t, taken, val, path = stack.pop()
+        count += 1
+        if count > node_limit:
+            exact = False
+            break
+        # skip triples that conflict with what is taken
+        while t < n and (taken & set(nd[t])):
+            t += 1
+        if t == n:
+            if val > best_val + 1e-12:
+                best_val, best = val, list(path)
+            continue
+        if val + suffix[t] <= best_val + 1e-12:
+            continue
+        stack.append((t + 1, taken, val, path))  # without triple t
+        stack.append((t + 1, taken | set(nd[t]), val + ww[t], (*path, t)))  # with it
+    return order[np.array(best, dtype=np.intp)].astype(np.intp), exact
 
 
 def _match_best(
     calib: Calibration, d1: NDArray[np.float64], d2: NDArray[np.float64], s: MatchSettings
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    lat = calib.lattice
-    if lat is None:
-        return _match_best_no_lattice(calib, d1, d2, s)
-    rig = calib.rig
-    D = rig.baseline_mm
-    H = rig.floor_depth_mm
-    f = 0.5 * (rig.cam1.f_over_k_px + rig.cam2.f_over_k_px)
-    p1 = rig.cam1.ray_slopes(d1[:, :2])  # (X/Z, (Y − Y1)/Z)
-    p2 = rig.cam2.ray_slopes(d2[:, :2])
-    tol_a = s.row_tol_px / f
-    sb = lat.step_b
-    # Laser row of each dot from its own camera (the row does not change with depth, SPEC §2).
-    l1f = (p1[:, 0] - lat.a0) / lat.step_a
-    l2f = (p2[:, 0] - lat.a0) / lat.step_a
-    l1 = np.rint(l1f).astype(np.int64)
-    l2 = np.rint(l2f).astype(np.int64)
-    on1 = (np.abs(l1f - l1) <= s.lattice_tol) & (l1 >= lat.rows[0] - 1) & (l1 <= lat.rows[1] + 1)
-    on2 = (np.abs(l2f - l2) <= s.lattice_tol) & (l2 >= lat.rows[0] - 1) & (l2 <= lat.rows[1] + 1)
-    # Anchors: ray index of each dot implied by a lattice end visible in its camera, or −1.
-    mult1 = _multiplicity(d1[:, 2], s.double_dot_ratio)
-    mult2 = _multiplicity(d2[:, 2], s.double_dot_ratio)
-    walk_tol = s.walk_tol
-    sigma_px = float(calib.residuals.get("row_rms_px", 0.1)) if calib.residuals else 0.1
-    if walk_tol is None:
-        # a depth jump across a hidden ray can mimic one step to within a few hundredths, so
-        # the walk is as strict as the dots' own scatter allows (0.1 px when unknown)
-        walk_tol = min(0.25, max(0.05, 5.0 * math.sqrt(2.0) * sigma_px / (f * sb)))
-    k1 = _anchor_labels(rig.cam1, p1, l1, on1, lat, s, mult1 > 1, walk_tol)
-    k2 = _anchor_labels(rig.cam2, p2, l2, on2, lat, s, mult2 > 1, walk_tol)
-    # Candidates: same laser row, disparity D/Z in the window, mid slope on a laser ray.
-    lo, hi = D / (H + s.dropoff_depth_mm), D / s.min_depth_mm
-    ids2 = np.flatnonzero(on2)
-    key2 = l2[ids2] * 1000.0 + p2[ids2, 1]
-    o2 = np.argsort(key2, kind="stable")
-    ids2, key2 = ids2[o2], key2[o2]
-    ids1 = np.flatnonzero(on1)
-    key1 = l1[ids1] * 1000.0 + p1[ids1, 1]
-    a_lo = np.searchsorted(key2, key1 - hi, side="left")
-    a_hi = np.searchsorted(key2, key1 - lo, side="right")
-    own, pos = _expand_ranges(a_lo, a_hi)
-    i, j = ids1[own], ids2[pos]
-    if len(i) == 0:
-        return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    disp = p1[i, 1] - p2[j, 1]  # D/Z
-    b_mid = 0.5 * (p1[i, 1] + p2[j, 1])  # Y/Z: the slope of the laser ray, if the pair is true
-    kb = (b_mid - lat.b0) / sb
-    ray = np.rint(kb).astype(np.int64)
-    res_b = np.abs(kb - ray)
-    keep = (res_b <= s.lattice_tol) & (np.abs(p1[i, 0] - p2[j, 0]) <= tol_a)
-    keep &= (ray >= lat.cols[0]) & (ray <= lat.cols[1])  # no dot comes from a ray that is not there
-    i0, j0 = i[keep], j[keep]  # before the labels: for the phantom check
-    # A dot whose camera shows the end of its laser row knows its ray: pairs against it go.
-    keep &= (k1[i] == _NO_RAY) | (k1[i] == ray)
-    keep &= (k2[j] == _NO_RAY) | (k2[j] == ray)
-    i, j, disp, ray, res_b = i[keep], j[keep], disp[keep], ray[keep], res_b[keep]
-    if len(i) == 0:
-        return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    c_floor = np.minimum(np.abs(disp - D / H) / max(hi - D / H, 1e-9), 1.0)
-    c_row = np.minimum(np.abs(p1[i, 0] - p2[j, 0]) / tol_a, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.abs(np.log(np.maximum(d1[i, 2], 1e-3) / np.maximum(d2[j, 2], 1e-3)))
-    c_bright = np.minimum(np.nan_to_num(ratio / math.log(2.0)), 1.0)
-    c_lat = np.minimum(res_b / s.lattice_tol, 1.0)
-    cost = 0.6 * c_floor + 0.2 * c_lat + 0.1 * c_row + 0.1 * c_bright
-    # anchored pairs are certain; the rest carry the floor-first preference
-    anchored = (k1[i] != _NO_RAY) | (k2[j] != _NO_RAY)
-    gain = 1.0 - 0.01 * cost + 0.001 * anchored
-    # Pairs fixed by the labels of both dots, with no rival, need no search.
-    cnt_i = np.bincount(i, minlength=len(d1))
-    cnt_j = np.bincount(j, minlength=len(d2))
-    sure = (k1[i] != _NO_RAY) & (k2[j] != _NO_RAY) & (cnt_i[i] == 1) & (cnt_j[j] == 1)
-    si, sj = i[sure], j[sure]
-    rest = ~sure
-    used_j = np.zeros(len(d2), dtype=bool)
-    used_j[sj] = True
-    rest &= ~used_j[j] | (mult2[j] > 1)
-    slack = 0.3 * sb
-    if rest.any() and sure.any():
-        # the rest must keep the order of rays and camera-2 columns with the sure pairs
-        skey = l1[si] * 1000.0 + p1[si, 1]
-        so = np.argsort(skey)
-        skey, sray, se2 = skey[so], ray[sure][so], p2[sj[so], 1]
-        q = l1[i] * 1000.0 + p1[i, 1]
-        pos = np.searchsorted(skey, q)
-        left = np.maximum(pos - 1, 0)
-        right = np.minimum(pos, len(skey) - 1)
-        has_l = (pos > 0) & (np.rint(skey[left] / 1000.0) == l1[i])
-        has_r = (pos < len(skey)) & (np.rint(skey[right] / 1000.0) == l1[i])
-        e2c = p2[j, 1]
-        rest &= ~has_l | ((ray > sray[left]) & (e2c > se2[left] - slack))
-        rest &= ~has_r | ((ray < sray[right]) & (e2c < se2[right] + slack))
-    if not rest.any():
-        return si.astype(np.intp), sj.astype(np.intp)
-    vi, vj = _row_viterbi(
-        l1,
-        p1[:, 1],
-        i[rest],
-        j[rest],
-        ray[rest],
-        p2[j[rest], 1],
-        disp[rest],
-        gain[rest],
-        slack,
-        2.0 * sb,
-        mult2,
+    m = match_best_triples(calib, d1, d2, s)
+    return m.i1, m.i2
+
+
+def match_best_triples(
+    calib: Calibration, dots1: NDArray, dots2: NDArray, settings: MatchSettings | None = None
+) -> TripleMatch:
+    """:func:`match_triples` with the calibration's rig, laser model and pixel noise."""
+    if calib.laser is None:
+        raise ValueError("the calibration has no laser model: recalibrate with `omnid calibrate`")
+    return match_triples(
+        calib.rig, calib.laser, calib.pixel_sigma_px, _as_dots(dots1), _as_dots(dots2), settings
     )
-    ci = np.concatenate([si, vi]).astype(np.intp)
-    cj = np.concatenate([sj, vj]).astype(np.intp)
-    suspect = _floor_phantom_suspects(p1[ci], p2[cj], lat, D / H, s.phantom_margin_mm, D)
-    if suspect.any():
-        # labels may be wrong here (a row end hidden by an obstacle looks like the lattice
-        # end), so the floor reading is looked for among all candidates, labels ignored
-        keep_h = _unambiguous(l1, p1[:, 1], p2[:, 1], i0, j0, ci, cj, suspect, sb, (-2.0,), D / H)
-        ci, cj = ci[keep_h], cj[keep_h]
-    # under the floor: deeper than dropoff_min_mm and than 5 σ of the disparity's scatter
-    under = max(D / H - D / (H + s.dropoff_min_mm), 5.0 * math.sqrt(2.0) * sigma_px / f)
-    keep_d = _dropoff_supported(p1[ci], p2[cj], lat, D / H - under)
-    return ci[keep_d], cj[keep_d]
-
-
-def _dropoff_supported(
-    q1: NDArray[np.float64],
-    q2: NDArray[np.float64],
-    lat: LaserLattice,
-    under_disp: float,
-) -> NDArray[np.bool_]:
-    """Which pairs to keep: a pair read under the floor (disparity D/Z below ``under_disp``)
-    needs a neighbour that agrees.
-
-    ``q1``, ``q2`` are the ray slopes (X/Z, Y/Z) of each pair's dots. A real drop-off is a
-    surface: the next ray of its laser row or the same ray of the next row lands on it too, at
-    a disparity within 0.3 lattice steps. A lone pair under the floor is a dot whose true
-    partner is hidden, paired with the image of a nearer dot that lies just beside where the
-    partner would be (at the edge of an occluder): a phantom drop-off (a false stop), so it
-    is left unmatched.
-    """
-    keep = np.ones(len(q1), dtype=bool)
-    if len(q1) == 0:
-        return keep
-    disp = q1[:, 1] - q2[:, 1]  # D/Z
-    deep = disp < under_disp
-    if not deep.any():
-        return keep
-    row = np.rint((q1[:, 0] - lat.a0) / lat.step_a).astype(np.int64)
-    col = np.rint((0.5 * (q1[:, 1] + q2[:, 1]) - lat.b0) / lat.step_b).astype(np.int64)
-    width = int(col.max() - col.min()) + 3
-    key = (row - row.min() + 1) * width + (col - col.min() + 1)
-    order = np.argsort(key, kind="stable")
-    skey, sdisp = key[order], disp[order]
-    supported = np.zeros(len(q1), dtype=bool)
-    for off in (-1, 1, -width, width):
-        q = key + off
-        pos = np.clip(np.searchsorted(skey, q), 0, len(skey) - 1)
-        hit = (skey[pos] == q) & (np.abs(sdisp[pos] - disp) < 0.3 * lat.step_b)
-        hit &= sdisp[pos] < under_disp
-        supported |= hit
-    keep[deep & ~supported] = False
-    return keep
-
-
-def _floor_phantom_suspects(
-    q1: NDArray[np.float64],
-    q2: NDArray[np.float64],
-    lat: LaserLattice,
-    floor_disp: float,
-    margin_mm: float,
-    D: float,
-) -> NDArray[np.bool_]:
-    """Which pairs may be floor rows read two lattice steps off (phantom obstacles).
-
-    ``q1``, ``q2`` are the ray slopes (X/Z, Y/Z) of each pair's dots. A pairing of floor dots
-    shifted by two lattice steps reads as a flat surface at the depth where D/Z is the
-    floor's D/H plus two steps (SPEC §2: about 576 mm high on the default rig). Obstacles
-    stand on the floor, so along one laser column (rays of equal Y/Z) a dot of a farther row
-    (larger X/Z) cannot lie nearer (smaller X) than a dot of a nearer row: that ray would have
-    hit the obstacle under it. A pair at the floor's shifted depth that lies more than
-    ``margin_mm`` nearer than a dot of a lower row of its column is therefore the floor read
-    one step off on each camera, or a table top at that height over visible floor: which of
-    the two, the caller decides from the rest of the row (:func:`_unambiguous`).
-    """
-    out = np.zeros(len(q1), dtype=bool)
-    if len(q1) < 2:
-        return out
-    disp = q1[:, 1] - q2[:, 1]  # D/Z
-    z = D / np.maximum(disp, 1e-9)
-    x = q1[:, 0] * z  # forward distance X = (X/Z)·Z, mm
-    col = np.rint((0.5 * (q1[:, 1] + q2[:, 1]) - lat.b0) / lat.step_b).astype(np.int64)
-    row = np.rint((q1[:, 0] - lat.a0) / lat.step_a).astype(np.int64)
-    order = np.lexsort((row, col))
-    c_o, x_o = col[order], x[order]
-    grp = np.cumsum(np.concatenate([[True], c_o[1:] != c_o[:-1]])) - 1
-    big = float(np.max(np.abs(x_o))) * 4.0 + 1.0
-    run = np.maximum.accumulate(x_o + grp * big) - grp * big
-    prev = np.full(len(x_o), -np.inf)
-    same = np.concatenate([[False], grp[1:] == grp[:-1]])
-    prev[1:] = np.where(same[1:], run[:-1], -np.inf)
-    band = np.abs(disp[order] - floor_disp - 2.0 * lat.step_b) < 0.3 * lat.step_b
-    out[order] = band & (x_o < prev - margin_mm)
-    return out
-
-
-def _unambiguous(
-    row1: NDArray[np.int64],
-    e1: NDArray[np.float64],
-    e2: NDArray[np.float64],
-    cand_i: NDArray[np.intp],
-    cand_j: NDArray[np.intp],
-    ci: NDArray[np.intp],
-    cj: NDArray[np.intp],
-    free: NDArray[np.bool_],
-    sb: float,
-    shifts: tuple[float, ...] = (-2.0, 2.0),
-    floor_disp: float | None = None,
-) -> NDArray[np.bool_]:
-    """Which chosen pairs to keep: runs of unlabelled pairs whose pairing is ambiguous go.
-
-    A run is a stretch of chosen pairs marked ``free`` (here: no lattice label on its dots, or
-    a phantom suspect) along one laser row, in camera-1 column order, with a continuous
-    disparity (steps below half a lattice step). Pairing every camera-1 dot of the run (and of the one lattice step beyond each end)
-    with the camera-2 dot two lattice steps over instead (disparity + each of ``shifts``
-    steps: the same laser rays, another flat surface, SPEC §2) is its shifted reading. When the shifted reading is
-    made of valid candidates, uses no dot of another chosen pair and pairs at least as many
-    dots as the run, nothing in the row tells the two apart (the floor-first and smoothness
-    preferences are guesses): the run is refused. With ``floor_disp`` (D/H), a run with floor
-    pairs on both sides in its row is kept. An unmatched dot is safe; a whole row one
-    lattice step off is a phantom obstacle (or a real one read as floor).
-    """
-    keep = np.ones(len(ci), dtype=bool)
-    disp_c = e1[ci] - e2[cj]
-    disp_a = e1[cand_i] - e2[cand_j]
-    used1 = np.zeros(len(e1), dtype=bool)
-    used2 = np.zeros(len(e2), dtype=bool)
-    used1[ci] = True
-    used2[cj] = True
-    order = np.lexsort((e1[ci], row1[ci]))
-    r_o, d_o, f_o = row1[ci][order], disp_c[order], free[order]
-    brk = np.ones(len(order), dtype=bool)
-    brk[1:] = (r_o[1:] != r_o[:-1]) | (np.abs(d_o[1:] - d_o[:-1]) > 0.5 * sb)
-    if floor_disp is not None:
-        # a suspect frees the pairs of its stretch of continuous disparity that lie at the
-        # floor's shifted depth too: the ends of a row read one step off are no surer than its
-        # middle (their neighbours beyond are hidden), but a real surface beside it stays
-        seg = np.cumsum(brk) - 1
-        band = np.abs(d_o - floor_disp - 2.0 * sb) < 0.3 * sb
-        f_o = f_o | (band & (np.bincount(seg, weights=f_o.astype(np.float64))[seg] > 0))
-    brk[1:] |= f_o[1:] != f_o[:-1]
-    run_id = np.cumsum(brk) - 1
-    cand_row = row1[cand_i]
-    # a suspect run's shifted reading may lose a dot at each end to the pairs beside it
-    slack_ends = 1 if floor_disp is not None else 0
-    for rid in np.unique(run_id[f_o]):
-        at = np.flatnonzero(run_id == rid)
-        members = order[at]
-        if floor_disp is not None and at[0] > 0 and at[-1] < len(order) - 1:
-            # floor pairs on both sides in the row: a surface standing out of the floor (its
-            # edges show as a gap and a merged dot), not the floor read one step off
-            nb = order[[at[0] - 1, at[-1] + 1]]
-            if (row1[ci[nb]] == row1[ci[members[0]]]).all() and (
-                np.abs(disp_c[nb] - floor_disp) < 0.3 * sb
-            ).all():
-                continue
-        ri, rj = ci[members], cj[members]
-        row = row1[ri[0]]
-        lo, hi = e1[ri].min() - 1.3 * sb, e1[ri].max() + 1.3 * sb
-        xs = np.argsort(e1[ri])
-        near = (cand_row == row) & (e1[cand_i] >= lo) & (e1[cand_i] <= hi)
-        if not near.any():
-            continue
-        ni, nj, nd = cand_i[near], cand_j[near], disp_a[near]
-        d_ref = np.interp(e1[ni], e1[ri][xs], disp_c[members][xs])
-        own1 = np.isin(ni, ri)
-        own2 = np.isin(nj, rj)
-        avail = (own1 | ~used1[ni]) & (own2 | ~used2[nj])
-        for shift in shifts:
-            alt = avail & (np.abs(nd - d_ref - shift * sb) < 0.3 * sb)
-            if not alt.any():
-                continue
-            n_alt = min(len(np.unique(ni[alt])), len(np.unique(nj[alt])))
-            if n_alt >= len(ri) - slack_ends:
-                keep[members] = False
-                break
-    return keep
-
-
-def _anchor_labels(
-    cam: MirrorCamera,
-    p: NDArray[np.float64],
-    row: NDArray[np.int64],
-    on: NDArray[np.bool_],
-    lat: LaserLattice,
-    s: MatchSettings,
-    double: NDArray[np.bool_],
-    walk_tol: float,
-) -> NDArray[np.int64]:
-    """Laser ray index of each dot implied by the ends of its laser row, or ``_NO_RAY``.
-
-    Where one ray step beyond a row's outermost dot still lies well inside the mirror disk, a dot
-    there would have been seen, so the outermost dot is the end of the laser lattice (ray
-    ``cols[0]`` on the left, ``cols[1]`` on the right) — unless it is hidden: an occluder's edge
-    (a partition beside a gap) can hide the end ray from one camera only, and then a
-    neighbouring row shows a dot one step beyond (the lattice goes on there at about the same
-    depth); such an end is no anchor (taking it was a whole row one ray off in that camera,
-    and with the other camera's end hidden the other way, a row read two steps off: SPEC §2). Counting lattice steps inward along the
-    row (while the spacing stays a whole number of steps, i.e. the depth does not jump) gives
-    the ray of each dot. Rows whose two ends disagree get no labels.
-    """
-    out = np.full(len(p), _NO_RAY, dtype=np.int64)
-    ids = np.flatnonzero(on)
-    if len(ids) == 0:
-        return out
-    sb = lat.step_b
-    ids = ids[np.lexsort((p[ids, 1], row[ids]))]
-    L, e, a = row[ids], p[ids, 1], p[ids, 0]
-    n = len(ids)
-    start = np.concatenate([[True], L[1:] != L[:-1]])
-    end = np.concatenate([L[1:] != L[:-1], [True]])
-    g = np.cumsum(start) - 1
-    first = np.flatnonzero(start)
-    last = np.flatnonzero(end)
-    step = np.zeros(n)
-    step[1:] = (e[1:] - e[:-1]) / sb
-    inc = np.rint(step)
-    # The walk stops at a gap (a missing dot, or a depth jump of whole lattice steps) and at a
-    # double-bright dot (two dots on top of each other: a surface one step nearer).
-    bad = ~start & ((np.abs(step - inc) > walk_tol) | (inc != 1))
-    dbl = double[ids]
-    bad |= dbl
-    bad[1:] |= dbl[:-1] & ~start[1:]
-    inc[start] = 0.0
-    csum = np.cumsum(inc)
-    bcum = np.cumsum(bad)
-
-    def beyond_inside(idx: NDArray[np.intp], direction: float) -> NDArray[np.bool_]:
-        xyz = np.column_stack([a[idx], e[idx] + direction * sb + cam.y_mm, np.ones(len(idx))])
-        return cam.in_disk(cam.project(xyz), margin_px=s.anchor_margin_px)
-
-    # A neighbouring row with a dot one step beyond this row's end (±0.3 step: about the same
-    # depth) shows the lattice going on there: this row's next dot is hidden, not missing.
-    e0, span = e.min() - 2.0 * sb, e.max() - e.min() + 4.0 * sb
-    key = L * 2.0 + (e - e0) / span  # ascending, like the dots: by row, then column slope
-
-    def hidden_beyond(idx: NDArray[np.intp], direction: float) -> NDArray[np.bool_]:
-        hit = np.zeros(len(idx), dtype=bool)
-        for dr in (-1, 1):
-            at = e[idx] + direction * sb - e0
-            lo = (L[idx] + dr) * 2.0 + (at - 0.3 * sb) / span
-            hi = (L[idx] + dr) * 2.0 + (at + 0.3 * sb) / span
-            hit |= np.searchsorted(key, hi, side="right") > np.searchsorted(key, lo, side="left")
-        return hit
-
-    has_l = (beyond_inside(first, -1.0) & ~hidden_beyond(first, -1.0))[g]
-    has_r = (beyond_inside(last, +1.0) & ~hidden_beyond(last, +1.0))[g]
-    k_l = lat.cols[0] + (csum - csum[first][g])
-    ok_l = has_l & (bcum - bcum[first][g] == 0)
-    k_r = lat.cols[1] - (csum[last][g] - csum)
-    ok_r = has_r & (bcum[last][g] - bcum == 0)
-    k = np.where(ok_l, k_l, k_r).astype(np.int64)
-    ok = ok_l | ok_r
-    conflict = (ok_l & ok_r & (k_l != k_r)) | (ok & ((k < lat.cols[0]) | (k > lat.cols[1])))
-    bad_row = np.zeros(len(first), dtype=bool)
-    np.logical_or.at(bad_row, g[conflict], True)
-    ok &= ~bad_row[g]
-    k = np.where(ok & ~dbl, k, _NO_RAY)
-    if not ok.all():
-        _propagate_labels(k, e, csum, np.cumsum(start | bad) - 1, first, last, sb, lat)
-    out[ids] = k
-    return out
-
-
-def _propagate_labels(
-    k: NDArray[np.int64],
-    e: NDArray[np.float64],
-    csum: NDArray[np.float64],
-    seg: NDArray[np.int64],
-    first: NDArray[np.intp],
-    last: NDArray[np.intp],
-    sb: float,
-    lat: LaserLattice,
-) -> None:
-    """Carry ray labels to rows whose ends the mirror disk hides, in place.
-
-    A laser ray's dots in neighbouring rows lie at nearly the same column slope (the depth of a
-    surface changes little from one row to the next), so a dot within 0.3 lattice steps of a
-    labelled dot of the row before takes its ray; a regularly spaced run of dots takes the
-    labels only when at least two such votes agree and none disagrees. Only rows with no label
-    of their own are filled (a depth jump of exactly one lattice step would fool the vote).
-    Sweeps forward, then back. ``k``, ``e``, ``csum`` and ``seg`` are sorted by (row, column slope).
-    """
-    n_rows = len(first)
-    for order in (range(1, n_rows), range(n_rows - 2, -1, -1)):
-        for r in order:
-            a, b = first[r], last[r] + 1
-            if (k[a:b] != _NO_RAY).any():
-                continue  # only rows with no label at all: a row's own ends are surer
-            nb = r - 1 if order.step == 1 else r + 1
-            pa, pb = first[nb], last[nb] + 1
-            lab = k[pa:pb] != _NO_RAY
-            if lab.sum() < 2:
-                continue
-            pe, pk = e[pa:pb][lab], k[pa:pb][lab]
-            q = np.clip(np.searchsorted(pe, e[a:b]), 1, len(pe) - 1)
-            near = np.where(np.abs(pe[q - 1] - e[a:b]) < np.abs(pe[q] - e[a:b]), q - 1, q)
-            close = (np.abs(pe[near] - e[a:b]) < 0.3 * sb) & (k[a:b] == _NO_RAY)
-            for sg in np.unique(seg[a:b][k[a:b] == _NO_RAY]):
-                m = (seg[a:b] == sg) & close
-                votes = pk[near[m]] - csum[a:b][m]
-                if len(votes) >= 2 and (votes == votes[0]).all():
-                    sel = np.flatnonzero(seg[a:b] == sg) + a
-                    lab_new = (votes[0] + csum[sel]).astype(np.int64)
-                    if lab_new.min() >= lat.cols[0] and lab_new.max() <= lat.cols[1]:
-                        k[sel] = lab_new
-
-
-def _row_viterbi(
-    row1: NDArray[np.int64],
-    e1: NDArray[np.float64],
-    i: NDArray[np.intp],
-    j: NDArray[np.intp],
-    ray: NDArray[np.int64],
-    e2: NDArray[np.float64],
-    disp: NDArray[np.float64],
-    gain: NDArray[np.float64],
-    slack: float,
-    disp_scale: float,
-    mult2: NDArray[np.int64],
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Best assignment along each laser row: a Viterbi pass over the camera-1 dots in column
-    order, each either unmatched or paired with one of its candidates, all rows at once.
-
-    Consecutive pairs must keep the order of laser rays (strictly) and of camera-2 columns
-    (within ``slack``) and use different camera-2 dots unless that dot may stand for two
-    (``mult2``); a change of disparity between neighbours costs a little (surfaces are mostly
-    continuous). The unmatched state carries the last pair of its best path, so the order holds
-    across unmatched dots too. Returns the chosen (i, j).
-    """
-    # camera-1 dots with candidates, in (row, column) order → grid (G rows, P positions)
-    u, inv = np.unique(i, return_inverse=True)
-    uo = np.lexsort((e1[u], row1[u]))
-    rank = np.empty(len(u), dtype=np.int64)
-    rank[uo] = np.arange(len(u))
-    ur = row1[u][uo]
-    rstart = np.concatenate([[True], ur[1:] != ur[:-1]])
-    grp = np.cumsum(rstart) - 1
-    pos_in_row = np.arange(len(u)) - np.flatnonzero(rstart)[grp]
-    G, P = int(grp[-1]) + 1, int(pos_in_row.max()) + 1
-    cg, cp = grp[rank[inv]], pos_in_row[rank[inv]]
-    # candidates of each dot: slot 0..C−1, best gain first
-    co = np.lexsort((-gain, rank[inv]))
-    slot = np.empty(len(i), dtype=np.int64)
-    first = np.concatenate([[True], rank[inv][co][1:] != rank[inv][co][:-1]])
-    slot[co] = np.arange(len(co)) - np.maximum.accumulate(np.where(first, np.arange(len(co)), 0))
-    C = int(slot.max()) + 1
-    shape = (G, P, C + 1)
-    W = np.full(shape, -np.inf)
-    W[:, :, C] = 0.0
-    K = np.full(shape, -(2**40), dtype=np.int64)
-    E = np.full(shape, -np.inf)
-    J = np.full(shape, -1, dtype=np.int64)
-    Dv = np.full(shape, 1e9)  # no pair before: the first disparity step costs the same for all
-    DB = np.zeros(shape, dtype=bool)
-    W[cg, cp, slot] = gain
-    K[cg, cp, slot] = ray
-    E[cg, cp, slot] = e2
-    J[cg, cp, slot] = j
-    Dv[cg, cp, slot] = disp
-    DB[cg, cp, slot] = mult2[j] > 1
-    CID = np.full(shape, -1, dtype=np.int64)
-    CID[cg, cp, slot] = np.arange(len(i))
-    gi = np.arange(G)
-    cidx = np.arange(C)[None, :]
-    back = np.zeros(shape, dtype=np.int64)
-    S = W[:, 0].copy()
-    aK, aE, aJ, aD = K[:, 0].copy(), E[:, 0].copy(), J[:, 0].copy(), Dv[:, 0].copy()
-    for t in range(1, P):
-        k_t, e_t, j_t, d_t = (
-            K[:, t, None, :C],
-            E[:, t, None, :C],
-            J[:, t, None, :C],
-            Dv[:, t, None, :C],
-        )
-        compat = (aK[:, :, None] < k_t) & (aE[:, :, None] < e_t + slack)
-        compat &= (aJ[:, :, None] != j_t) | DB[:, t, None, :C]
-        jump = np.minimum(np.abs(aD[:, :, None] - d_t), disp_scale)
-        tot = np.where(compat, S[:, :, None] - jump * (0.05 / disp_scale), -np.inf)
-        am = np.argmax(tot, axis=1)  # (G, C)
-        best = tot[gi[:, None], am, cidx]
-        carry = np.argmax(S, axis=1)
-        newS = np.empty_like(S)
-        newS[:, :C] = W[:, t, :C] + best
-        newS[:, C] = S[gi, carry]
-        back[:, t, :C] = am
-        back[:, t, C] = carry
-        nK, nE, nJ, nD = K[:, t].copy(), E[:, t].copy(), J[:, t].copy(), Dv[:, t].copy()
-        nK[:, C], nE[:, C], nJ[:, C], nD[:, C] = (
-            aK[gi, carry],
-            aE[gi, carry],
-            aJ[gi, carry],
-            aD[gi, carry],
-        )
-        S, aK, aE, aJ, aD = newS, nK, nE, nJ, nD
-    state = np.argmax(S, axis=1)
-    chosen = np.empty((P, G), dtype=np.int64)
-    for t in range(P - 1, -1, -1):
-        chosen[t] = CID[gi, t, state]
-        state = back[gi, t, state]
-    sel = chosen.ravel()
-    sel = sel[sel >= 0]
-    if len(sel) == 0:
-        return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    out_i, out_j = i[sel], j[sel]
-    r = np.argsort(-gain[sel], kind="stable")
-    out_i, out_j = out_i[r], out_j[r]
-    keep = _occurrence(out_j) < mult2[out_j]
-    return out_i[keep].astype(np.intp), out_j[keep].astype(np.intp)
-
-
-def _match_best_no_lattice(
-    calib: Calibration, d1: NDArray[np.float64], d2: NDArray[np.float64], s: MatchSettings
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """``best`` without a laser lattice (a calibration that found none): rows by clustering,
-    rays ranked by the mid slope, the most dots per row chain (slower, and blind to the
-    two-step ambiguity that the lattice ends resolve)."""
-    rig = calib.rig
-    D = rig.baseline_mm
-    H = rig.floor_depth_mm
-    f = 0.5 * (rig.cam1.f_over_k_px + rig.cam2.f_over_k_px)
-    p1 = rig.cam1.ray_slopes(d1[:, :2])  # (X/Z, (Y − Y1)/Z)
-    p2 = rig.cam2.ray_slopes(d2[:, :2])
-    tol_a = s.row_tol_px / f
-    i, j = _candidates_by_row(p1[:, 0], p2[:, 0], tol_a)
-    disp = p1[i, 1] - p2[j, 1]  # D/Z
-    lo, hi = D / (H + s.dropoff_depth_mm), D / s.min_depth_mm
-    ok = (disp >= lo) & (disp <= hi)
-    i, j, disp = i[ok], j[ok], disp[ok]
-    b_mid = 0.5 * (p1[i, 1] + p2[j, 1])  # Y/Z: the slope of the laser ray, if the pair is true
-    # No lattice known: group by camera-1 row, rank rays by the mid slope.
-    srt = np.sort(p1[:, 0])
-    gaps = np.concatenate([[0], np.cumsum(np.diff(srt) > 2 * tol_a)])
-    row_id = gaps[np.searchsorted(srt, p1[i, 0])].astype(np.int64)
-    ray_id = np.zeros(len(i), dtype=np.int64)
-    order = np.lexsort((b_mid, row_id))
-    ray_id[order] = np.arange(len(order))
-    c_lat = np.zeros(len(i))
-    slack = 3.0 / f
-    if len(i) == 0:
-        return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    c_floor = np.minimum(np.abs(disp - D / H) / max(hi - D / H, 1e-9), 1.0)
-    c_row = np.minimum(np.abs(p1[i, 0] - p2[j, 0]) / tol_a, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.abs(np.log(np.maximum(d1[i, 2], 1e-3) / np.maximum(d2[j, 2], 1e-3)))
-    c_bright = np.minimum(np.nan_to_num(ratio / math.log(2.0)), 1.0)
-    cost = 0.6 * c_floor + 0.2 * np.minimum(c_lat, 1.0) + 0.1 * c_row + 0.1 * c_bright
-    gain = 1.0 - 0.01 * cost  # one more pair always outweighs any cost difference
-    e1, e2 = p1[i, 1], p2[j, 1]
-    # A dot twice as bright as usual is two dots on top of each other (a surface one lattice
-    # step nearer makes its dots land on their neighbours' floor positions): it may be used twice.
-    mult1 = _multiplicity(d1[:, 2], s.double_dot_ratio)
-    mult2 = _multiplicity(d2[:, 2], s.double_dot_ratio)
-    return _chain_dp(row_id, ray_id, i, j, e1, e2, gain, slack, mult1, mult2)
-
-
-def _multiplicity(strength: NDArray[np.float64], ratio: float) -> NDArray[np.int64]:
-    """How many dots each detection may stand for: 2 where it is ``ratio`` × the median bright."""
-    if len(strength) == 0:
-        return np.zeros(0, dtype=np.int64)
-    med = float(np.median(strength))
-    return np.where(strength > ratio * med, 2, 1).astype(np.int64)
-
-
-def _chain_dp(
-    row_id: NDArray[np.int64],
-    ray_id: NDArray[np.int64],
-    i: NDArray[np.intp],
-    j: NDArray[np.intp],
-    e1: NDArray[np.float64],
-    e2: NDArray[np.float64],
-    gain: NDArray[np.float64],
-    slack: float,
-    mult1: NDArray[np.int64],
-    mult2: NDArray[np.int64],
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Best chain of hypotheses per laser row (max total gain), all rows at once.
-
-    A chain is ordered by laser ray (strictly) and by both cameras' column slopes (within
-    ``slack``); consecutive members use different dots unless a dot may stand for two
-    (``mult`` = 2). Returns the chosen (i, j).
-    """
-    order = np.lexsort((e1, ray_id, row_id))
-    row_id, ray_id, i, j = row_id[order], ray_id[order], i[order], j[order]
-    e1, e2, gain = e1[order], e2[order], gain[order]
-    groups, start, counts = np.unique(row_id, return_index=True, return_counts=True)
-    G, T = len(groups), int(counts.max())
-    pos = np.arange(len(row_id)) - np.repeat(start, counts)
-    g_of = np.repeat(np.arange(G), counts)
-
-    def pad(v: NDArray, fill: float) -> NDArray:
-        out = np.full((G, T), fill, dtype=np.float64)
-        out[g_of, pos] = v
-        return out
-
-    K, I, J = pad(ray_id, np.inf), pad(i, -1), pad(j, -2)
-    E1, E2, W = pad(e1, np.inf), pad(e2, np.inf), pad(gain, -np.inf)
-    D1 = pad(mult1[i] > 1, 0.0) > 0
-    D2 = pad(mult2[j] > 1, 0.0) > 0
-    valid = np.zeros((G, T), dtype=bool)
-    valid[g_of, pos] = True
-    score = np.full((G, T), -np.inf)
-    prev = np.full((G, T), -1, dtype=np.intp)
-    gi = np.arange(G)
-    for t in range(T):
-        if t == 0:
-            score[:, 0] = np.where(valid[:, 0], W[:, 0], -np.inf)
-            continue
-        compat = (
-            (K[:, :t] < K[:, t : t + 1])
-            & (E1[:, :t] < E1[:, t : t + 1] + slack)
-            & (E2[:, :t] < E2[:, t : t + 1] + slack)
-            & ((I[:, :t] != I[:, t : t + 1]) | D1[:, t : t + 1])
-            & ((J[:, :t] != J[:, t : t + 1]) | D2[:, t : t + 1])
-        )
-        cand = np.where(compat, score[:, :t], -np.inf)
-        am = np.argmax(cand, axis=1)
-        bv = cand[gi, am]
-        use = np.isfinite(bv)
-        score[:, t] = np.where(valid[:, t], np.where(use, bv, 0.0) + W[:, t], -np.inf)
-        prev[:, t] = np.where(use & valid[:, t], am, -1)
-    cur = np.argmax(score, axis=1)
-    cur = np.where(np.isfinite(score[gi, cur]), cur, -1)
-    chosen = []
-    while (cur >= 0).any():
-        g = gi[cur >= 0]
-        c = cur[cur >= 0]
-        chosen.append(start[g] + c)
-        cur[g] = prev[g, c]
-    if not chosen:
-        return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    sel = np.concatenate(chosen)
-    out_i, out_j = i[sel], j[sel]
-    # Each dot is used at most as often as it may stand for dots (the chain allows near-ties in
-    # column order): keep the best uses.
-    rank = np.argsort(-gain[sel], kind="stable")
-    out_i, out_j = out_i[rank], out_j[rank]
-    keep = (_occurrence(out_i) < mult1[out_i]) & (_occurrence(out_j) < mult2[out_j])
-    return out_i[keep].astype(np.intp), out_j[keep].astype(np.intp)
-
-
-def _occurrence(ids: NDArray[np.intp]) -> NDArray[np.int64]:
-    """0 for the first occurrence of each id in ``ids``, 1 for the second, ..."""
-    order = np.argsort(ids, kind="stable")
-    srt = ids[order]
-    first = np.concatenate([[True], srt[1:] != srt[:-1]]) if len(srt) else np.zeros(0, bool)
-    start = np.maximum.accumulate(np.where(first, np.arange(len(srt)), 0))
-    occ = np.empty(len(ids), dtype=np.int64)
-    occ[order] = np.arange(len(srt)) - start
-    return occ
 
 
 # --------------------------------------------------------------------------------------------

@@ -53,6 +53,7 @@ __all__ = [
     "ray_residual_px",
     "thesis_offsets",
     "triangulate",
+    "triangulate_on_beams",
 ]
 
 
@@ -185,3 +186,56 @@ def ray_residual_px(rig: StereoRig, pixels: ArrayLike) -> NDArray[np.float64]:
     hat = A @ np.linalg.pinv(A)
     res = b - b @ hat.T
     return np.asarray(np.linalg.norm(res, axis=1), dtype=np.float64)
+
+
+def triangulate_on_beams(
+    rig: StereoRig,
+    pixels: ArrayLike,
+    slope: NDArray[np.float64],
+    cross_mm: NDArray[np.float64],
+    slope_sigma: NDArray[np.float64],
+    pixel_sigma_px: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``best`` triangulation with each dot's laser beam as a third view: xyz (N, 3), cov (N, 3, 3).
+
+    A dot of the beam with slope s and mirror-plane crossing c satisfies (p, q) = s + c·u in the
+    unknowns θ = (p, q, u) of the ``best`` method (module docstring); the beam is known to
+    ``slope_sigma`` (per axis, from the calibration's source and floor-point errors). Weighted
+    least squares over the four image coordinates (σ = ``pixel_sigma_px``) and these two beam
+    equations gives θ and cov θ = N⁻¹, propagated to (X, Y, Z) as in :func:`triangulate`. With
+    a well-known beam the depth is fixed by the dot's slide along its track as well as by the
+    disparity, which shrinks its error; with a poorly known one it falls back to plain stereo.
+    """
+    q = _as_pixels4(pixels)
+    sigma = max(_check_sigma(pixel_sigma_px), 1e-6)
+    n = len(q)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
+    A = best_design_matrix(rig)
+    b = _ideal_b(rig, q)
+    wb = 1.0 / np.maximum(np.asarray(slope_sigma, dtype=np.float64), 1e-9) ** 2  # (N,)
+    c = np.asarray(cross_mm, dtype=np.float64)
+    s = np.asarray(slope, dtype=np.float64)
+    # beam rows B = [[1, 0, −c_X], [0, 1, −c_Y]], B·θ = s
+    B = np.zeros((n, 2, 3))
+    B[:, 0, 0] = 1.0
+    B[:, 1, 1] = 1.0
+    B[:, 0, 2] = -c[:, 0]
+    B[:, 1, 2] = -c[:, 1]
+    N = (A.T @ A)[None] / sigma**2 + wb[:, None, None] * np.einsum("nki,nkj->nij", B, B)
+    rhs = (b @ A) / sigma**2 + wb[:, None] * np.einsum("nki,nk->ni", B, s)
+    inv = np.linalg.inv(N)
+    theta = np.einsum("nij,nj->ni", inv, rhs)
+    p, qq, u = theta[:, 0], theta[:, 1], theta[:, 2]
+    front = u > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_u = np.where(front, 1.0 / u, np.nan)
+    xyz = np.column_stack([p * inv_u, qq * inv_u, inv_u])
+    G = np.zeros((n, 3, 3))
+    G[:, 0, 0] = inv_u
+    G[:, 1, 1] = inv_u
+    G[:, 0, 2] = -xyz[:, 0] * inv_u
+    G[:, 1, 2] = -xyz[:, 1] * inv_u
+    G[:, 2, 2] = -inv_u * inv_u
+    cov = np.einsum("nij,njk,nlk->nil", G, inv, G)
+    return xyz, cov

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -64,6 +65,14 @@ class PointCloud:
     pixels      (N, 4) matched image positions r1, c1, r2, c2, px
     classes     (N,) :class:`PointClass` codes (uint8)
     floor_depth_mm  the floor's depth H, so that height h = H − Z
+    calibration_fit  how well the capture fitted the calibration: the share of the dots both
+                cameras detected that a calibrated laser beam explains (1 = all; NaN = not
+                measured). A rig knocked out of calibration explains few (see
+                :class:`omnid.core.pipeline.CalibrationHealth`).
+    not_understood  dots that pair off the floor but that no known beam explains (a
+                calibration that does not know the laser's source, and a capture that could
+                not place it): their area is not free space, and no point is reported there
+                (the daemon keeps such a capture out of its map: the area counts as unseen)
     """
 
     xyz: NDArray[np.float64] = field(default_factory=lambda: _empty((0, 3)))
@@ -71,6 +80,8 @@ class PointCloud:
     pixels: NDArray[np.float64] = field(default_factory=lambda: _empty((0, 4)))
     classes: NDArray[np.uint8] = field(default_factory=lambda: _empty((0,), np.uint8))
     floor_depth_mm: float = 1100.0
+    calibration_fit: float = math.nan
+    not_understood: int = 0
 
     def __post_init__(self) -> None:
         n = len(self.xyz)

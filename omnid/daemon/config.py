@@ -55,22 +55,46 @@ class ControlSettings(Settings):
 
 @dataclass(frozen=True)
 class PerceptionSettings(Settings):
-    """The perception cycle (laser off → mask pair → laser on → base pair → perceive)."""
+    """The capture cycle (omnid.daemon.capture) and the perception worker."""
 
     enabled: bool = True
     method: Literal["best", "thesis"] = "best"
     calibration_path: str = "/etc/omnid/calibration.yaml"
-    period_s: float = setting(0.5, 0.01, 10.0)  # start a new cycle at most this often
-    # wait this long for the control unit to report the laser
+    # stream: a cloud for every laser-on frame, the laser off for every mask_every_frames-th;
+    # stationary: the thesis' laser off → mask → laser on → base every period_s (the default
+    # until the matcher and the map hold at frame rate: docs/framerate.md)
+    capture: Literal["stream", "stationary"] = "stationary"
+    period_s: float = setting(0.5, 0.01, 10.0)  # stationary: start a new cycle at most this often
+    # stream: worst case from the laser request to the light switched (the command path plus
+    # the relay); frames exposed while a request may still be taking effect are not used
+    laser_switch_latency_s: float = setting(0.018, 0.0, 0.5)
+    # stream: the laser is switched again no sooner than this after a switch (relay wear)
+    laser_min_switch_interval_s: float = setting(0.0, 0.0, 1.0)
+    # stream: every n-th frame of the cameras' clock is a mask (laser off): n − 1 clouds per n
+    # frames when the laser switches within one gap between exposures
+    mask_every_frames: int = setting(3, 2, 60)
+    # stream: a base frame waits for the next mask and is subtracted against the brighter of
+    # both (the parallax the floor's motion compensation misses lies on either side); false:
+    # the earlier mask alone, dilated, up to mask_every_frames − 1 frame periods sooner
+    mask_bracketing: bool = True
+    mask_max_age_s: float = setting(
+        0.3, 0.05, 5.0
+    )  # stream: a mask farther from its base is unused
+    # move each mask to its base frame's pose by the wheels' motion before subtracting
+    motion_compensation: bool = True
+    # the control unit must report a requested laser switch within this
     laser_timeout_s: float = setting(0.5, 0.01, 5.0)
-    flush_frames: bool = True  # drop frames queued before the laser switched
+    flush_frames: bool = True  # stationary: drop frames queued before the laser switched
     capture_policy: Literal["limit", "compensate"] = "limit"
-    # speed cap while mask/base frames are taken ("limit"); measured harmless up to 240 mm/s
+    # stationary: speed cap while mask/base frames are taken ("limit"); measured harmless up to 240 mm/s
     # on tiled floors (tools/eval_capture_motion.py, docs/daemon.md): a margin for sharper,
     # specular floor texture than modelled
     capture_speed_mm_s: float = setting(80.0, 0.0, 500.0)
     rig_x_offset_mm: float = setting(300.0, -2000.0, 2000.0)  # rig origin ahead of the axle
     frame_timeout_s: float = setting(1.0, 0.01, 10.0)
+    # a frame pair awaited this long (or a camera error) counts as the cameras lost: speed
+    # capped at safety.camera_lost_speed_mm_s until a pair arrives (30 fps: 2.4 frame times)
+    camera_silence_s: float = setting(0.08, 0.02, 2.0)
     # a perceive call longer than this: worker killed, restarted
     worker_timeout_s: float = setting(1.0, 0.05, 30.0)
     # the worker process yields the CPU to the control loop (0 = as is)

@@ -2,26 +2,31 @@
 
 Synchronous and clock-injected (docs/interfaces.md): the caller passes monotonic times, so the
 asyncio daemon runs it in real time and the simulator faster than real time. Every fault path
-ends in zero wheel velocity, logged with its reason:
+ends in zero wheel velocity, logged with its reason; "zero" means duty 0 and ``enable=False`` in
+the same cycle (the unit brakes), ramps and wheel PI integrators reset:
 
-- rider input silent/stale (per source, see :mod:`omnid.daemon.rider`) → emergency ramp to 0;
-- control-unit status missing or older than ``control.status_timeout_s`` → duty 0 at once and
-  ``enable=False`` (without feedback nothing can be regulated; the control unit brakes);
-- a control-unit fault flag → likewise;
-- perception missing or stale → no forward motion (:mod:`omnid.daemon.safety`);
-- the control-unit port is gone (``link_ok`` False, set by the daemon from the link's health)
-  → likewise, at once rather than after ``status_timeout_s``;
-- an exception inside a cycle → duty 0, ``enable=False``, controllers reset;
+- rider input silent/stale/invalid (per source, see :mod:`omnid.daemon.rider`) → zero;
+- control-unit status missing or older than ``control.status_timeout_s`` → zero (without
+  feedback nothing can be regulated);
+- a stopping control-unit fault flag → zero;
+- the control-unit link unhealthy (``link_ok`` False, set by the daemon from the link's health:
+  port gone or ``max_missed_replies`` replies missed) → zero at once;
+- a stall: more than two command periods since the previous cycle → zero, and motion needs
+  rider input newer than the stall (:mod:`omnid.daemon.arming`);
+- an exception inside a cycle → zero;
+- perception missing, stale, or older than ``safety.perception_max_travel_mm`` of travel → no
+  forward motion (:mod:`omnid.daemon.safety`); the camera lost (``camera_ok`` False, set by the
+  daemon) → at most ``safety.camera_lost_speed_mm_s`` at once;
 - a bump — a wheel asked to turn whose clock counter does not move
   (:class:`~omnid.daemon.motion.StallDetector`) → duty 0 at once (the wheels are pressed against
   something: no ramp), and requests in the same direction (wheel velocities within
   ``motion.bump_same_direction_deg`` of the bumped ones) are refused (reason ``bump``) until the
   rider asks for something else — stop, centre, or another direction.
 
-With ``control.rearm_after_fault`` (on in the shipped etc/omnid.yaml), after a control-unit
-fault or an exception the chair does not resume by itself when the link comes back: motion
-stays refused (``rearm``) until the rider's demand has been idle or stop once, so a command the
-rider held through the fault does not restart the wheels unannounced.
+With ``control.rearm_after_fault`` (on in the shipped etc/omnid.yaml), after a fault the chair
+does not resume by itself when the fault clears: motion stays refused (``rearm_wait``) until the
+source that was driving has been seen live and at rest (:class:`~omnid.daemon.arming.Arming`),
+so a command the rider held through the fault does not restart the wheels unannounced.
 
 Perception results arrive late (they are computed in a worker thread while the chair moves):
 the cloud is moved into the current robot frame by the odometry between its capture time and
@@ -41,7 +46,9 @@ import numpy as np
 from omnid.core.freespace import FreeSpaceMap
 from omnid.core.kinematics import wheel_speeds
 from omnid.core.occupancy import OccupancyGrid
+from omnid.core.pipeline import HealthSettings
 from omnid.core.types import PointCloud
+from omnid.daemon.arming import Arming
 from omnid.daemon.config import OmnidConfig
 from omnid.daemon.motion import MotionController, Odometry, StallDetector
 from omnid.daemon.rider import JoystickSample, RiderDemand, RiderMux, TiltSample
@@ -62,6 +69,14 @@ log = logging.getLogger(__name__)
 STOPPING_FAULTS = (
     FAULT_WATCHDOG | FAULT_OVERCURRENT_LEFT | FAULT_OVERCURRENT_RIGHT | FAULT_UNDERVOLTAGE
 )
+
+
+#: A capture whose dots fit the calibration less than this (share on a calibrated laser beam,
+#: ``PointCloud.calibration_fit``) means the rig was knocked: the pipeline's own threshold.
+_MIN_CALIBRATION_FIT = HealthSettings().min_explained
+# this many dots off the floor without a beam make a capture unusable (a ghost or two pair by
+# chance; an obstacle lights dozens)
+_MIN_NOT_UNDERSTOOD = 3
 
 
 class StatusSample(Protocol):
@@ -165,13 +180,23 @@ class ControlCore:
         self.halt = False  # shutting down: stop at the emergency rate whatever the rider asks
         self.status: StatusSample | None = None
         self.perception_time_s: float | None = None
+        # the last capture did not fit the calibration (the rig was knocked): no forward motion
+        self.calibration_lost = False
+        # the last capture had dots no known beam explains (floor-only calibration): not used
+        self.not_understood = False
         self.last_report: CycleReport | None = None
         self._last_step_s: float | None = None
-        self._poses: deque[tuple[float, float, float, float]] = deque()
+        # (t, x, y, θ, path length): odometry for late perception and the travel bound
+        self._poses: deque[tuple[float, float, float, float, float]] = deque()
         self._log = ReasonLog(log, config.safety.log_interval_s)
         self.fault_count = 0
         self.link_ok = True  # the daemon clears it while the control-unit link is unhealthy
-        self.rearm_after: str | None = None  # a fault stopped the chair: wait for a release
+        self.camera_ok = True  # the daemon clears it while the cameras deliver nothing
+        self.arming = Arming(config.control.rearm_after_fault, config.safety.log_interval_s)
+        self.path_mm = 0.0  # odometry path length of the axle midpoint since start
+        self._perception_path_mm = 0.0  # path length at the newest perception's capture ...
+        self._perception_path_t: float | None = None  # ... for this perception time
+        self._live_inputs: set[str] = set()  # continuous rider sources live last cycle
 
     @property
     def grid(self) -> OccupancyGrid:
@@ -208,38 +233,68 @@ class ControlCore:
         )
         if dx or dy or dth:
             self.map.move(dx, dy, dth)
+            self.path_mm += math.hypot(dx, dy)
         occupy = getattr(self.map, "occupy", None)
         if occupy is not None:  # the chair's own trail is seen free space
             sf = self.config.safety
             w = 0.5 * sf.footprint_width_mm
             occupy(-sf.footprint_rear_mm, sf.footprint_front_mm, -w, w)
         x, y, th = (float(v) for v in self.odometry.pose)
-        self._poses.append((float(status.timestamp_s), x, y, th))
+        self._poses.append((float(status.timestamp_s), x, y, th, self.path_mm))
         horizon = float(status.timestamp_s) - self.config.control.pose_history_s
         while self._poses and self._poses[0][0] < horizon:
             self._poses.popleft()
 
-    def _pose_at(self, t_s: float) -> tuple[float, float, float] | None:
+    def _pose_at(self, t_s: float) -> tuple[float, float, float, float] | None:
+        """(x, y, θ, path length) at monotonic ``t_s`` from the odometry history."""
         best = None
-        for t, x, y, th in self._poses:
+        for t, x, y, th, path in self._poses:
             if t <= t_s:
-                best = (x, y, th)
+                best = (x, y, th, path)
             else:
                 break
         if best is None and self._poses:
-            t, x, y, th = self._poses[0]
-            best = (x, y, th) if t - t_s < 0.1 else None
+            t, x, y, th, path = self._poses[0]
+            best = (x, y, th, path) if t - t_s < 0.1 else None
         return best
 
     def on_perception(self, cloud: PointCloud, capture_time_s: float) -> None:
         """A perception result for frames taken at ``capture_time_s``: into the map, compensated
         for the motion since then."""
+        fit = cloud.calibration_fit
+        if math.isfinite(fit) and fit < _MIN_CALIBRATION_FIT:
+            # garbage in: keep it out of the map, and refuse forward motion until a capture
+            # fits again (omnid.core.pipeline.CalibrationHealth)
+            if not self.calibration_lost:
+                log.error(
+                    "calibration_lost: only %.0f %% of the dots lie on a calibrated laser beam: "
+                    "the rig has moved since calibration; forward motion refused (recalibrate)",
+                    100 * fit,
+                )
+            self.calibration_lost = True
+            return
+        if cloud.not_understood >= _MIN_NOT_UNDERSTOOD:
+            # dots off the floor that no known beam explains (floor-only calibration): that area
+            # is not free space, and the capture is kept out of the map — perception goes stale
+            # and the freshness rule stops the chair, as with no capture
+            if not self.not_understood:
+                log.warning(
+                    "perception: %d dots off the floor not understood (the laser's source is "
+                    "unknown: recalibrate with --extra); such captures are not used",
+                    cloud.not_understood,
+                )
+            self.not_understood = True
+            return
+        self.not_understood = False
+        if self.calibration_lost and math.isfinite(fit):
+            log.warning("calibration_lost cleared: %.0f %% of the dots fit again", 100 * fit)
+            self.calibration_lost = False
         then = self._pose_at(capture_time_s)
         offset = self.config.perception.rig_x_offset_mm
         source = (0.0, 0.0, 0.0)  # the laser, where it was at the capture (current rig frame)
         if then is not None and self._poses:
-            _, x1, y1, th1 = self._poses[-1]
-            x0, y0, th0 = then
+            _, x1, y1, th1, _ = self._poses[-1]
+            x0, y0, th0, _ = then
             c, s = math.cos(th0), math.sin(th0)
             dxw, dyw = x1 - x0, y1 - y0
             motion = (c * dxw + s * dyw, -s * dxw + c * dyw, th1 - th0)
@@ -251,6 +306,20 @@ class ControlCore:
             return  # no dots: no evidence that the way is clear, the map's age keeps growing
         if self.perception_time_s is None or capture_time_s > self.perception_time_s:
             self.perception_time_s = float(capture_time_s)
+
+    def perception_travel_mm(self) -> float:
+        """Path length driven since the newest perception was captured (inf: none yet, or
+        older than the odometry history)."""
+        t = self.perception_time_s
+        if t is None:
+            return math.inf
+        if t != self._perception_path_t:
+            at = self._pose_at(t)
+            self._perception_path_t = t
+            self._perception_path_mm = math.inf if at is None else at[3]
+            if at is None and not self._poses:
+                self._perception_path_mm = self.path_mm  # no odometry yet: nothing driven
+        return self.path_mm - self._perception_path_mm
 
     # ---- the cycle ----------------------------------------------------------------------
     def _on_bump(self, stalled: tuple[bool, bool], now_s: float) -> None:
@@ -307,22 +376,56 @@ class ControlCore:
                 logging.ERROR,
             )
             log.debug("cycle exception", exc_info=True)
-            self.motion.reset()
-            self.rearm_after = "cycle_exception"
-            cmd = WheelCommand(0.0, 0.0, laser_on=self.laser_on, enable=False)
-            self.last_report = CycleReport(
-                now_s, RiderDemand(reason="fault"), None, cmd, (Reason.FAULT,)
-            )
-            return cmd
+            self.arming.on_fault("cycle_exception", now_s)
+            return self._zero(now_s, RiderDemand(reason="fault"), Reason.FAULT)
+
+    def fault(self, reason: str, now_s: float) -> WheelCommand:
+        """A fault found outside the core (the daemon's control loop failed): zero now, and the
+        re-arm rule as for any fault."""
+        self.fault_count += 1
+        self.arming.on_fault(reason, now_s)
+        return self._zero(now_s, RiderDemand(reason="fault"), Reason.FAULT)
+
+    def _zero(self, now_s: float, demand: RiderDemand, reason: Reason) -> WheelCommand:
+        """Duty 0 with ENABLE cleared this cycle; ramps and wheel integrators reset."""
+        self.motion.reset()
+        cmd = WheelCommand(0.0, 0.0, laser_on=self.laser_on, enable=False)
+        self.last_report = CycleReport(now_s, demand, None, cmd, (reason,))
+        return cmd
+
+    def _inputs_lost(self, now_s: float) -> list[str]:
+        """Continuous rider sources (tilt, joystick) that were live last cycle and are not now."""
+        r = self.config.rider
+        live = {
+            n for n in ("tilt", "joystick") if getattr(r, n).enabled and self.mux.is_live(n, now_s)
+        }
+        lost = sorted(self._live_inputs - live)
+        self._live_inputs = live
+        return lost
 
     def _step(self, now_s: float) -> WheelCommand:
         cfg = self.config
-        dt = 0.0 if self._last_step_s is None else now_s - self._last_step_s
-        dt = min(max(dt, 0.0), cfg.control.max_dt_s)
+        prev = self._last_step_s
+        gap = 0.0 if prev is None else now_s - prev
+        dt = min(max(gap, 0.0), cfg.control.max_dt_s)
         self._last_step_s = now_s
         demand = self.mux.decide(now_s)
         if self.halt:
             demand = RiderDemand(stop=True, source="daemon", reason="shutdown_stale")
+        self.arming.observe(self.mux, now_s)
+        # inputs that went stale during a stall are the stall's doing, not a fault of their own
+        lost = self._inputs_lost(now_s)
+        loop_stalled = gap > cfg.control_unit.max_command_age_s + 1e-6
+        if loop_stalled:
+            # the loop did not run: whatever the wheels do was computed before the stall
+            self.arming.on_stall(now_s)
+            lost = []
+            self._log.log(
+                "stall",
+                f"control loop stalled {gap * 1000:.0f} ms; wheels stopped, motion needs new "
+                "rider input",
+                now_s,
+            )
         st = self.status
         if (
             st is None
@@ -335,37 +438,41 @@ class ControlCore:
             code = Reason.STATUS_STALE if reason == "status_stale" else Reason.FAULT
             self._log.log(reason, "no valid control-unit status; wheels stopped", now_s)
             if st is not None:  # start-up (no status yet) needs no re-arming
-                self.rearm_after = reason
-            self.motion.reset()
+                self.arming.on_fault(reason, now_s)
             if st is None:
                 self.odometry.reset()
-            cmd = WheelCommand(0.0, 0.0, laser_on=self.laser_on, enable=False)
-            self.last_report = CycleReport(now_s, demand, None, cmd, (code,))
+            return self._zero(now_s, demand, code)
+        if loop_stalled:
+            self.arming.filter(demand, self.mux, now_s)  # a release is a release, even now
+            ramp = self.motion.ramp
+            v, w = ramp.v_mm_s, ramp.omega_rad_s
+            cmd = self._zero(now_s, demand, Reason.FAULT)
+            if gap < cfg.control_unit.unit_watchdog_s:
+                # the unit kept the wheels going through the stall: resume from the ramp's
+                # speed (integrators reset), not from a standstill the chair never reached
+                ramp.v_mm_s, ramp.omega_rad_s = v, w
             return cmd
+        for name in lost:
+            self.arming.on_fault(f"{name}_lost", now_s)
+        if (
+            demand.stop
+            and demand.source != "daemon"
+            and demand.reason.endswith(("_stale", "_invalid"))
+        ):
+            self._log.log(demand.reason, "rider input lost; wheels stopped", now_s)
+            return self._zero(now_s, demand, Reason.INPUT_STALE)
         reasons: list[Reason] = []
         m = cfg.motion
         emergency = False
-        if self.rearm_after is not None and not cfg.control.rearm_after_fault:
-            self.rearm_after = None
-        if self.rearm_after is not None:
-            if demand.moving:
-                self._log.log(
-                    "rearm",
-                    f"motion refused until the rider releases the command (after "
-                    f"{self.rearm_after})",
-                    now_s,
-                )
-                demand = RiderDemand(stop=True, source=demand.source, reason="rearm_wait")
-                reasons.append(Reason.FAULT)
-            else:
-                log.info("rider released after %s: motion allowed again", self.rearm_after)
-                self.rearm_after = None
+        allowed = self.arming.filter(demand, self.mux, now_s)
+        if allowed is not demand:
+            reasons.append(Reason.FAULT)
+            demand = allowed
         if demand.stop:
             v_req = w_req = 0.0
-            if demand.reason.endswith(("_stale", "_invalid")):  # silence, bad input, shutdown
+            if demand.reason.endswith("_stale"):  # shutdown: the emergency ramp
                 reasons.append(Reason.INPUT_STALE)
                 emergency = True
-                self._log.log(demand.reason, "rider input lost; stopping", now_s)
             elif demand.reason.endswith("_stop"):
                 reasons.append(Reason.RIDER_STOP)
         else:
@@ -386,7 +493,18 @@ class ControlCore:
         if self.capturing and cfg.perception.capture_policy == "limit":
             cap = cfg.perception.capture_speed_mm_s
             v_req = min(max(v_req, -cap), cap)
+        if self.calibration_lost and v_req > 0:
+            v_req = 0.0
+            reasons.append(Reason.CALIBRATION_LOST)
+        if not self.camera_ok:
+            cap = cfg.safety.camera_lost_speed_mm_s
+            if abs(v_req) > cap:
+                v_req = math.copysign(cap, v_req)
+                reasons.append(Reason.CAMERA_LOST)
+            emergency = emergency or abs(self.motion.ramp.v_mm_s) > cap + 1e-9
         age = None if self.perception_time_s is None else now_s - self.perception_time_s
+        if self.perception_travel_mm() > cfg.safety.perception_max_travel_mm:
+            age = None  # driven too far on this map: as stale as an old one
         if bump_refused:
             decision = SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.BUMP,))
         else:

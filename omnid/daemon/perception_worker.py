@@ -8,9 +8,11 @@ in its own process it does not.
 :class:`PerceptionWorker` owns one child process (``spawn`` start method: no fork of a
 multi-threaded asyncio process) and a pipe to it:
 
-- request: ``struct.pack("<dII", t_s, rows, cols)`` + mask1, base1, mask2, base2 (gray8, row
-  major) — 1.2 MB for 640x480, written from a helper thread so the event loop never blocks on
-  the pipe;
+- request (a capture job, :func:`encode_job`): ``struct.pack("<dIII", t_s, rows, cols, n)`` +
+  n × ``struct.pack("<?ddd", known, dx_mm, dy_mm, dtheta_rad)`` (the chair's motion from each
+  mask to the base) + base1, base2, then n mask pairs (gray8, row major) — 1.2 MB for 640x480
+  with one mask, written from a helper thread so the event loop never blocks on the pipe. The
+  child moves each mask to the base's pose (:func:`job_capture`) and perceives;
 - reply: ``b"C"`` + the pickled :class:`~omnid.core.types.PointCloud`, or ``b"E"`` + a one-line
   error.
 
@@ -34,18 +36,30 @@ import os
 import pickle
 import signal
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from omnid.core.motion_compensation import (
+    Motion,
+    compensated_mask,
+    disk_mask,
+    floor_motion_affine,
+)
 from omnid.core.types import PointCloud, StereoCapture
 from omnid.errors import OmnidError
+from omnid.logs import LogThrottle
 
 log = logging.getLogger(__name__)
+_THROTTLE = LogThrottle(log, interval_s=5.0)  # a worker crashing every cycle: one line per 5 s
 
-REQUEST_HEADER = struct.Struct("<dII")
+REQUEST_HEADER = struct.Struct("<dIII")
+MOTION_RECORD = struct.Struct("<?ddd")
 PerceiveFn = Callable[..., PointCloud]
+Image = NDArray[np.uint8]
+Pair = tuple[Image, Image]
 
 
 class PerceptionFailed(OmnidError, RuntimeError):
@@ -58,29 +72,100 @@ def _pipeline_perceive(capture: StereoCapture, calib: Any, method: str, settings
     return perceive(capture, calib, method, settings)  # type: ignore[arg-type]
 
 
-def encode_request(capture: StereoCapture) -> bytes:
-    """The request bytes for ``capture`` (four gray8 images of one shape)."""
-    imgs = [
-        np.ascontiguousarray(a, dtype=np.uint8)
-        for a in (capture.mask1, capture.base1, capture.mask2, capture.base2)
-    ]
+def job_capture(
+    base: Pair,
+    masks: Sequence[Pair],
+    motions: Sequence[Motion | None],
+    rig: Any = None,
+    rig_x_offset_mm: float = 0.0,
+    t_s: float = 0.0,
+) -> StereoCapture:
+    """The :class:`StereoCapture` perception subtracts for a job: each camera's masks moved to
+    the base frame's pose by the chair's motion (the floor's image motion,
+    :func:`~omnid.core.motion_compensation.floor_motion_affine`, for the calibrated ``rig``;
+    a motion of None, or no rig, leaves that mask as taken) and combined
+    (:func:`~omnid.core.motion_compensation.compensated_mask`)."""
+    if not masks:
+        raise ValueError("capture job without a mask frame")
+    out = []
+    for i, cam in enumerate((None, None) if rig is None else (rig.cam1, rig.cam2)):
+        affines = [
+            None
+            if m is None or cam is None or m == (0.0, 0.0, 0.0)
+            else floor_motion_affine(cam, m, rig_x_offset_mm, rig.floor_depth_mm)
+            for m in motions
+        ]
+        disk = None if cam is None or all(a is None for a in affines) else _disk(cam)
+        out.append(compensated_mask([pair[i] for pair in masks], affines, disk))
+    return StereoCapture(out[0], base[0], out[1], base[1], timestamp_s=t_s)
+
+
+_DISKS: dict[Any, NDArray[np.uint8]] = {}
+
+
+def _disk(cam: Any) -> NDArray[np.uint8]:
+    """The mirror disk mask of ``cam`` (computed once per camera)."""
+    disk = _DISKS.get(cam)
+    if disk is None:
+        if len(_DISKS) > 8:
+            _DISKS.clear()
+        disk = _DISKS[cam] = disk_mask(cam)
+    return disk
+
+
+def encode_job(
+    t_s: float, base: Pair, masks: Sequence[Pair], motions: Sequence[Motion | None]
+) -> bytes:
+    """The request bytes for a job (gray8 images of one shape; a motion per mask)."""
+    if len(masks) != len(motions):
+        raise ValueError("perception request: one motion per mask pair")
+    imgs = [np.ascontiguousarray(a, dtype=np.uint8) for pair in (base, *masks) for a in pair]
     if imgs[0].ndim != 2:
         raise ValueError(
             f"perception request: images must be gray8 (rows, cols), got {imgs[0].shape}"
         )
     rows, cols = imgs[0].shape
-    head = REQUEST_HEADER.pack(float(capture.timestamp_s), rows, cols)
-    return b"".join([head, *(a.tobytes() for a in imgs)])
+    if any(a.shape != (rows, cols) for a in imgs):
+        raise ValueError("perception request: all images must have one shape")
+    head = REQUEST_HEADER.pack(float(t_s), rows, cols, len(masks))
+    recs = [
+        MOTION_RECORD.pack(False, 0.0, 0.0, 0.0) if m is None else MOTION_RECORD.pack(True, *m)
+        for m in motions
+    ]
+    return b"".join([head, *recs, *(a.tobytes() for a in imgs)])
+
+
+def decode_job(data: bytes) -> tuple[float, Pair, list[Pair], list[Motion | None]]:
+    """Inverse of :func:`encode_job` (zero-copy views of ``data``)."""
+    t_s, rows, cols, n = REQUEST_HEADER.unpack_from(data)
+    off = REQUEST_HEADER.size
+    motions: list[Motion | None] = []
+    for _ in range(n):
+        known, dx, dy, dth = MOTION_RECORD.unpack_from(data, off)
+        off += MOTION_RECORD.size
+        motions.append((dx, dy, dth) if known else None)
+    px = rows * cols
+    if n < 1 or len(data) != off + 2 * (n + 1) * px:
+        raise ValueError(f"perception request: {len(data)} bytes for {n} masks of {rows}x{cols}")
+    a = np.frombuffer(data, np.uint8, 2 * (n + 1) * px, off).reshape(2 * (n + 1), rows, cols)
+    masks = [(a[2 + 2 * i], a[3 + 2 * i]) for i in range(n)]
+    return t_s, (a[0], a[1]), masks, motions
+
+
+def encode_request(capture: StereoCapture) -> bytes:
+    """The request bytes for ``capture`` (four gray8 images of one shape; no motion)."""
+    return encode_job(
+        capture.timestamp_s,
+        (capture.base1, capture.base2),
+        [(capture.mask1, capture.mask2)],
+        [None],
+    )
 
 
 def decode_request(data: bytes) -> StereoCapture:
-    """Inverse of :func:`encode_request` (zero-copy views of ``data``)."""
-    t_s, rows, cols = REQUEST_HEADER.unpack_from(data)
-    n = rows * cols
-    if len(data) != REQUEST_HEADER.size + 4 * n:
-        raise ValueError(f"perception request: {len(data)} bytes for 4 images of {rows}x{cols}")
-    a = np.frombuffer(data, np.uint8, 4 * n, REQUEST_HEADER.size).reshape(4, rows, cols)
-    return StereoCapture(a[0], a[1], a[2], a[3], timestamp_s=t_s)
+    """The capture a request holds, masks as taken (no motion compensation)."""
+    t_s, base, masks, _ = decode_job(data)
+    return job_capture(base, masks, [None] * len(masks), t_s=t_s)
 
 
 def _worker_main(
@@ -90,6 +175,7 @@ def _worker_main(
     method: str,
     settings: Any,
     nice: int,
+    rig_x_offset_mm: float = 0.0,
 ) -> None:
     """The child: answer requests until the parent's end of the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon handles Ctrl-C and stops us
@@ -104,7 +190,10 @@ def _worker_main(
         except (EOFError, OSError):
             return
         try:
-            cloud = fn(decode_request(data), calib, method, settings)
+            t_s, base, masks, motions = decode_job(data)
+            rig = getattr(calib, "rig", None)
+            capture = job_capture(base, masks, motions, rig, rig_x_offset_mm, t_s)
+            cloud = fn(capture, calib, method, settings)
             out = b"C" + pickle.dumps(cloud, protocol=pickle.HIGHEST_PROTOCOL)
         except Exception as exc:
             text = f"{type(exc).__name__}: {exc}".replace("\n", " ")[:500]
@@ -131,6 +220,8 @@ class PerceptionWorker:
     fn:
         The perceive function (module level, picklable by reference); default
         :func:`omnid.core.pipeline.perceive`.
+    rig_x_offset_mm:
+        Where the rig sits ahead of the axle midpoint (for moving masks by the chair's motion).
     """
 
     def __init__(
@@ -143,7 +234,9 @@ class PerceptionWorker:
         start_timeout_s: float = 20.0,
         nice: int = 10,
         fn: PerceiveFn = _pipeline_perceive,
+        rig_x_offset_mm: float = 0.0,
     ) -> None:
+        self.rig_x_offset_mm = rig_x_offset_mm
         self.calib, self.method, self.settings = calib, method, settings
         self.timeout_s, self.start_timeout_s, self.nice, self.fn = (
             timeout_s,
@@ -166,14 +259,22 @@ class PerceptionWorker:
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(
             target=_worker_main,
-            args=(child, self.fn, self.calib, self.method, self.settings, self.nice),
+            args=(
+                child,
+                self.fn,
+                self.calib,
+                self.method,
+                self.settings,
+                self.nice,
+                self.rig_x_offset_mm,
+            ),
             name="omnid-perception",
             daemon=True,
         )
         proc.start()
         child.close()
         self._proc, self._conn, self._ready = proc, parent, False
-        log.info("perception worker started (pid %d)", proc.pid)
+        _THROTTLE.info("started", "perception worker started (pid %d)", proc.pid)
 
     def _kill(self, why: str) -> None:
         proc, conn = self._proc, self._conn
@@ -184,14 +285,18 @@ class PerceptionWorker:
             if proc.is_alive():
                 proc.kill()
             proc.join(1.0)
-            log.warning("perception worker (pid %s) stopped: %s", proc.pid, why)
+            _THROTTLE.warning("stopped", "perception worker (pid %s) stopped: %s", proc.pid, why)
 
     @property
     def pid(self) -> int | None:
         return None if self._proc is None else int(self._proc.pid)
 
-    def _encode_and_request(self, capture: StereoCapture) -> bytes:
-        return self._blocking_request(encode_request(capture))  # 1.2 MB copied off the loop
+    def _encode_and_request(self, request: StereoCapture | tuple[Any, ...]) -> bytes:
+        if isinstance(request, StereoCapture):
+            payload = encode_request(request)
+        else:
+            payload = encode_job(*request)
+        return self._blocking_request(payload)  # 1.2 MB copied off the loop
 
     def _blocking_request(self, payload: bytes) -> bytes:
         """In the I/O thread: (re)start the child if needed, send, wait with the timeout."""
@@ -244,10 +349,24 @@ class PerceptionWorker:
     async def perceive(self, capture: StereoCapture) -> PointCloud:
         """The cloud of ``capture``; :class:`PerceptionFailed` on any failure (never hangs
         longer than ``timeout_s`` once the worker is up)."""
+        return await self._perceive(capture)
+
+    async def perceive_job(
+        self,
+        t_s: float,
+        base: Pair,
+        masks: Sequence[Pair],
+        motions: Sequence[Motion | None],
+    ) -> PointCloud:
+        """The cloud of a capture job (base pair, mask pairs, the chair's motion from each mask
+        to the base): the child moves the masks to the base's pose and perceives."""
+        return await self._perceive((t_s, base, list(masks), list(motions)))
+
+    async def _perceive(self, request: StereoCapture | tuple[Any, ...]) -> PointCloud:
         self.requests += 1
         loop = asyncio.get_running_loop()
         try:
-            reply = await loop.run_in_executor(self._pool, self._encode_and_request, capture)
+            reply = await loop.run_in_executor(self._pool, self._encode_and_request, request)
         except PerceptionFailed as exc:
             self.failures += 1
             self.last_error = str(exc)

@@ -91,7 +91,10 @@ class TiltSettings(Settings):
     dwell_s: float = setting(0.3, 0.0, 5.0)
     roll_offset_deg: float = setting(0.0, -45.0, 45.0)  # calibrated neutral pose
     pitch_offset_deg: float = setting(0.0, -45.0, 45.0)
-    timeout_s: float = setting(0.2, 0.015, 1.0)  # no reading for this long → stop (10 ms reads)
+    # no reading for this long → zero duty at once (the sensor reads every 10 ms); also the gap
+    # after which the dwell restarts. The daemon's tilt link reports a lost or silent sensor
+    # sooner (4 unanswered requests, ≈ 45 ms: tilt_sensor.stale_after_s); this is the backstop
+    timeout_s: float = setting(0.1, 0.015, 1.0)
     forward_mode: Literal["hold", "latch"] = "hold"  # latch: forward holds until stop/turn
     forward_fraction: float = setting(0.6, 0.05, 1.0)  # of the maximum speed
     turn_fraction: float = setting(0.4, 0.05, 1.0)  # of the maximum turn rate
@@ -222,6 +225,12 @@ class TiltInterpreter:
         self.calibrating = False
         log.info("tilt neutral pose calibrated: roll %.2f°, pitch %.2f°", r0, p0)
 
+    @property
+    def at_rest(self) -> bool:
+        """No motion command active or pending (the head within its thresholds, or in the stop
+        pose)."""
+        return self.active in (Intent.NONE, Intent.STOP) and self._pending is Intent.NONE
+
     def set_neutral(self, roll_offset_deg: float, pitch_offset_deg: float) -> None:
         """Use a new calibrated neutral pose (degrees); clears any active command."""
         self.roll_offset_deg = float(roll_offset_deg)
@@ -319,11 +328,19 @@ class RiderMux:
         self.tilt = TiltInterpreter(settings.tilt)
         self._joystick: tuple[float, float, float] | None = None  # forward, turn, t_s
         self._key: tuple[Intent, float] | None = None  # intent, t_s
+        self._lost: set[str] = set()  # sources whose device said it is gone, until they speak
+
+    def on_lost(self, name: str) -> None:
+        """The device of source ``name`` says it is gone (port lost, readings stale): the
+        source counts as stale now, not only once its ``timeout_s`` has passed."""
+        self._lost.add(name)
 
     def on_tilt(self, reading: TiltSample) -> None:
+        self._lost.discard("tilt")
         self.tilt.update(reading.roll_deg, reading.pitch_deg, reading.timestamp_s)
 
     def on_joystick(self, reading: JoystickSample) -> None:
+        self._lost.discard("joystick")
         fwd, turn = float(reading.forward), float(reading.turn)
         if not (np.isfinite(fwd) and np.isfinite(turn)):
             fwd, turn = float("nan"), float("nan")  # counted as a stop by decide()
@@ -342,7 +359,7 @@ class RiderMux:
             if not s.tilt.enabled:
                 return None
             t = self.tilt.last_timestamp_s
-            if t is None or now_s - t > s.tilt.timeout_s:
+            if t is None or now_s - t > s.tilt.timeout_s or "tilt" in self._lost:
                 return RiderDemand(stop=True, source="tilt", reason="tilt_stale")
             if self.tilt.calibrating:
                 return RiderDemand(stop=True, source="tilt", reason="tilt_calibrating")
@@ -352,7 +369,11 @@ class RiderMux:
         if name == "joystick":
             if not s.joystick.enabled:
                 return None
-            if self._joystick is None or now_s - self._joystick[2] > s.joystick.timeout_s:
+            if (
+                self._joystick is None
+                or now_s - self._joystick[2] > s.joystick.timeout_s
+                or "joystick" in self._lost
+            ):
                 return RiderDemand(stop=True, source="joystick", reason="joystick_stale")
             fwd, turn, _ = self._joystick
             if not (np.isfinite(fwd) and np.isfinite(turn)):
@@ -377,6 +398,45 @@ class RiderMux:
                 intent, s.keyboard.forward_fraction, s.keyboard.turn_fraction, "keyboard"
             )
         raise ValueError(f"unknown source {name!r}")
+
+    def source_demand(self, name: str, now_s: float) -> RiderDemand | None:
+        """What source ``name`` alone asks at ``now_s`` (``None``: enabled and idle, or not
+        enabled)."""
+        return self._source_demand(name, now_s)
+
+    def input_time_s(self, name: str) -> float | None:
+        """Monotonic time of the newest input from source ``name`` (``None``: none yet)."""
+        if name == "tilt":
+            return self.tilt.last_timestamp_s
+        if name == "joystick":
+            return None if self._joystick is None else self._joystick[2]
+        if name == "keyboard":
+            return None if self._key is None else self._key[1]
+        raise ValueError(f"unknown source {name!r}")
+
+    def is_live(self, name: str, now_s: float) -> bool:
+        """Source ``name`` is enabled and its input is fresh and valid (a continuous source that
+        is silent, stale, invalid or still calibrating is not live; the keyboard, whose presses
+        are events, always is)."""
+        d = self._source_demand(name, now_s)
+        return d is None or not d.reason.endswith(("_stale", "_invalid", "_calibrating"))
+
+    def released(self, name: str, now_s: float, since_s: float) -> bool:
+        """Source ``name`` is live and at rest or asking for stop, as seen in input newer than
+        ``since_s`` (the keyboard: no motion key held) — what re-arms the chair after a fault.
+
+        For the head tilt "at rest" means no command active or pending: a head still held past
+        a threshold after the sensor came back is not a release, even before its dwell ends."""
+        if name == "keyboard":
+            d = self._source_demand(name, now_s)
+            return d is None or not d.moving
+        t = self.input_time_s(name)
+        if t is None or t <= since_s or not self.is_live(name, now_s):
+            return False
+        if name == "tilt":
+            return self.tilt.at_rest
+        d = self._source_demand(name, now_s)
+        return d is None or not d.moving
 
     def source_demands(self, now_s: float) -> dict[str, RiderDemand | None]:
         """Each source's own demand at ``now_s`` (None: disabled or idle), in priority order —

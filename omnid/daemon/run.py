@@ -5,19 +5,29 @@ Tasks:
 - control loop at ``control.rate_hz`` on the monotonic clock, drift-free: deadlines are
   ``t0 + k·period``; a late cycle runs at once and a cycle more than one period late is skipped
   (counted), never bunched. Each cycle: joystick poll → ``core.step(now)`` →
-  ``ControlUnitLink.set_command``. The link's own task sends the latest command every
-  ``control_unit.command_period_s``; its replies arrive through ``core.on_status``. The core
-  stops the chair when no status came for ``control.status_timeout_s``, and at once when the
-  port is gone (``core.link_ok``).
+  ``ControlUnitLink.set_command(cmd, computed_s=now)``. The link's own task sends a frame every
+  ``control_unit.command_period_s``, carrying the latest command only while it is at most two
+  command periods old (:class:`~omnid.devices.control_unit.FreshnessGate`): a loop that dies
+  or stalls puts zero on the wire by itself. Replies arrive through ``core.on_status``; the
+  core stops the chair at once when the link is unhealthy (``core.link_ok``).
+- supervision: each cycle runs under a guard — an exception is logged (rate-limited), a zero
+  command goes out at once, the core's re-arm rule applies, and the loop goes on; after
+  ``_MAX_FAILED_CYCLES`` failures in a row, or when the loop's task ends for any other reason
+  than a stop request, the daemon sends zero and exits with status 70 for systemd to restart it.
+  ``WATCHDOG=1`` is sent only by a healthy loop: its last cycle succeeded, on time, and the
+  control-unit link's task runs.
 - perception (``perception.enabled``): the capture cycle :class:`~omnid.daemon.capture.CaptureCycle`
   (the same state machine the simulator drives) is told the laser state of every control-unit
-  reply and fed camera frames; it decides the laser bit of the next command and which frames
-  make a job (the thesis' cycle: laser off → reported off → flushed mask pair → laser on →
-  reported on → flushed base pair). Each job is perceived in a separate **worker process**
-  (:mod:`omnid.daemon.perception_worker`: no GIL shared with the control loop; exceptions,
-  crashes and hangs cost one cycle and restart the worker) → ``core.on_perception(cloud,
-  t_base)``. While frames are taken ``core.capturing`` caps the speed
-  (``perception.capture_policy: limit``); the cloud is placed by odometry anyway.
+  reply and fed camera frames (a reader task); it decides the laser bit of the next command and
+  which frames make a job: ``perception.capture: stationary`` the thesis' cycle (laser off →
+  reported off → flushed mask pair → laser on → reported on → flushed base pair; while frames
+  are taken ``core.capturing`` caps the speed, ``capture_policy: limit``), ``stream`` a job for
+  every laser-on frame, the laser switched in step with the frames (a change goes on the wire
+  at once: an extra control cycle) — docs/framerate.md. Each job is perceived in a separate
+  **worker process** (:mod:`omnid.daemon.perception_worker`: no GIL shared with the control
+  loop; the masks moved to the base's pose by the wheels' motion; exceptions, crashes and hangs
+  cost one job and restart the worker) → ``core.on_perception(cloud, t_base)``, entered in a
+  gap between control cycles; the cloud is placed by odometry at its capture time.
   A missing or invalid calibration file refuses the start (one line naming the file); with
   ``perception.enabled: false`` the daemon runs and refuses forward motion (no free space seen).
 - rider inputs: teleop keyboard socket; GS311 tilt sensor (:class:`TiltSensorLink`, readings
@@ -25,8 +35,14 @@ Tasks:
   (:class:`JoystickLink`, polled each cycle; opened again every second while absent at start,
   after that the link reopens it itself). A source
   enabled but silent is a stop (rider mux).
-- systemd: READY=1 once the links run, WATCHDOG=1 from the control loop (so a hung loop is
-  restarted), STATUS= once per ``service.status_period_s``.
+- systemd: READY=1 once the links run, WATCHDOG=1 from a healthy control loop (so a hung or
+  failing loop is restarted), STATUS= once per ``service.status_period_s``.
+- camera health: a frame pair the perception loop waits for longer than
+  ``perception.camera_silence_s``, or a camera error, clears ``core.camera_ok`` (speed capped at
+  ``safety.camera_lost_speed_mm_s`` from the next cycle) until a pair arrives.
+- ``--inject-faults`` (``tools/fault_figures.py`` only): SIGUSR1 kills the control loop's task,
+  SIGUSR2 raises in one cycle, SIGRTMIN blocks the event loop for ``OMNID_INJECT_STALL_S``
+  (2.2 s).
 - start: :func:`omnid.daemon.preflight.preflight` — the same checks ``omnid run --check``
   prints (calibration loads, ports, camera URL, teleop socket); an error refuses the start in
   one line naming the key and the file.
@@ -43,43 +59,97 @@ import asyncio
 import contextlib
 import logging
 import math
+import os
 import signal
 import time
-from dataclasses import dataclass, field
+from collections import deque
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from omnid.daemon.capture import CaptureCycle, CaptureFailure, CaptureSettings, Frame
 from omnid.daemon.config import ConfigHolder, OmnidConfig
 from omnid.daemon.core import ControlCore
 from omnid.daemon.service import Notifier
-from omnid.devices.control_unit import ControlUnitLink, WheelCommand
+from omnid.devices.control_unit import ControlUnitLink
+from omnid.logs import LogThrottle
 
 log = logging.getLogger(__name__)
+
+#: A cloud is entered into the map only when the next control cycle is at least this far off
+#: (an update takes ~1–4 ms); otherwise right after that cycle (s).
+ENTER_MARGIN_S = 0.006
+
+
+#: failed cycles in a row after which the daemon gives up (zero, exit 70: systemd restarts it)
+_MAX_FAILED_CYCLES = 25
+#: exit status when the control loop died (EX_SOFTWARE)
+EXIT_LOOP_DIED = 70
+
+
+class Samples:
+    """The newest ``capacity`` values of a series (a ring buffer: memory stays bounded however
+    long the daemon runs), with the count and maximum of all values ever added."""
+
+    def __init__(self, capacity: int = 8192) -> None:
+        self._buf = np.zeros(capacity)
+        self.count = 0
+        self.max = -math.inf
+
+    def add(self, value: float) -> None:
+        self._buf[self.count % len(self._buf)] = value
+        self.count += 1
+        self.max = max(self.max, value)
+
+    def values(self) -> list[float]:
+        """The kept values, oldest first."""
+        n, cap = self.count, len(self._buf)
+        if n <= cap:
+            return self._buf[:n].tolist()
+        i = n % cap
+        return np.concatenate([self._buf[i:], self._buf[:i]]).tolist()
+
+    def __len__(self) -> int:
+        return min(self.count, len(self._buf))
 
 
 @dataclass
 class LoopStats:
-    """Timing of the control loop and the perception cycle (s), for STATUS= and the benchmark."""
+    """Timing of the control loop and the perception cycle (s), for STATUS= and the benchmark;
+    each series keeps its newest 8192 values."""
 
     cycles: int = 0
     skipped: int = 0
-    lateness_s: list[float] = field(default_factory=list)
-    perception_cycles: int = 0
+    failed_cycles: int = 0
+    lateness_s: Samples = field(default_factory=Samples)
+    perception_cycles: int = 0  # clouds entered into the map
     perception_errors: int = 0
-    perception_s: list[float] = field(default_factory=list)  # perceive in the worker, wall
-    perception_latency_s: list[float] = field(default_factory=list)  # base frame → in the map
-    capture_s: list[float] = field(default_factory=list)  # laser off → base pair in hand
-    mask_to_base_s: list[float] = field(default_factory=list)  # mask pair → base pair
+    perception_s: Samples = field(default_factory=Samples)  # perceive in the worker, wall
+    perception_latency_s: Samples = field(default_factory=Samples)  # base frame → in the map
+    capture_s: Samples = field(default_factory=Samples)  # cycle start (stream: mask) → job
+    mask_to_base_s: Samples = field(default_factory=Samples)  # mask pair → base pair
+    frames_read: int = 0  # frame pairs the camera delivered
+    jobs_superseded: int = 0  # jobs dropped for newer ones before the worker took them
+    masks_taken: int = 0
+    perception_first_s: float | None = None  # monotonic time of the first and the last cloud
+    perception_last_s: float | None = None
 
     def record(self, late_s: float) -> None:
         self.cycles += 1
-        if len(self.lateness_s) < 200_000:
-            self.lateness_s.append(late_s)
+        self.lateness_s.add(late_s)
 
-    def note(self, series: list[float], value_s: float) -> None:
-        if len(series) < 100_000:
-            series.append(value_s)
+    def note(self, series: Samples, value_s: float) -> None:
+        series.add(value_s)
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain data: counters as numbers, series as lists (oldest first)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = v.values() if isinstance(v, Samples) else v
+        return out
 
 
 def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
@@ -98,7 +168,11 @@ class Daemon:
     """Owns the core, the device links and the tasks (see the module docstring)."""
 
     def __init__(
-        self, holder: ConfigHolder, notifier: Notifier | None = None, calibration: Any = None
+        self,
+        holder: ConfigHolder,
+        notifier: Notifier | None = None,
+        calibration: Any = None,
+        inject_faults: bool = False,
     ) -> None:
         self.holder = holder
         self.notifier = notifier or Notifier()
@@ -115,10 +189,14 @@ class Daemon:
         self.recording: Any = None  # omnid.record.session.DaemonRecording (record.path/view)
         rec = holder.config.record
         if rec.enabled or rec.view:
+            from omnid.errors import ConfigError
             from omnid.record.session import DaemonRecording
 
-            self.recording = DaemonRecording(holder.config, self.calibration)
-            self.core = self.recording.wrap(self.core)
+            try:
+                self.recording = DaemonRecording(holder.config, self.calibration)
+                self.core = self.recording.wrap(self.core)
+            except (ConfigError, OSError) as exc:  # never a reason not to drive
+                log.error("recording unavailable, the chair runs without it: %s", exc)
         self.tilt: Any = None
         self.joystick: Any = None
         self.worker: Any = None
@@ -132,9 +210,25 @@ class Daemon:
         self._link_was_ok: bool | None = None  # None: not yet heard (start-up is not a loss)
         self._reload_task: asyncio.Task[bool] | None = None
         self.capture_cycle = CaptureCycle(
-            CaptureSettings.from_config(holder.config.perception), start_s=time.monotonic()
+            CaptureSettings.from_config(holder.config), start_s=time.monotonic()
         )
-        self._capture_wake = asyncio.Event()  # a laser report arrived
+        self._capture_wake = asyncio.Event()  # a laser report or a frame arrived
+        self._frames_wanted = asyncio.Event()  # the cycle wants frames: the reader reads
+        # the capture jobs the worker takes next, oldest first (a mask completes up to
+        # mask_every_frames − 1 at once; beyond that the oldest is dropped)
+        self._jobs: deque[Any] = deque()
+        self._job_ready = asyncio.Event()
+        self._camera_reset = False  # the cycle gave up on the camera: reopen it
+        self._next_grid_s = time.monotonic()  # the control loop's next grid deadline
+        self._cycle_done = asyncio.Event()  # set after every grid cycle
+        self._throttle = LogThrottle(log, interval_s=5.0)
+        self.exit_code = 0
+        self._failed_in_a_row = 0
+        self._inject_faults = inject_faults
+        self._injected: str | None = None  # a fault to inject at the next cycle
+        self._camera_wait_s: float | None = None  # since when a frame pair is awaited
+        self._camera_failed = False
+        self._joystick_live = False
 
     @property
     def config(self) -> OmnidConfig:
@@ -143,7 +237,7 @@ class Daemon:
     # ---- inputs -------------------------------------------------------------------------
     def _on_status(self, status: Any) -> None:
         self.core.on_status(status)
-        self.capture_cycle.on_laser_report(bool(status.laser_on), float(status.timestamp_s))
+        self.capture_cycle.on_status(status)
         self._capture_wake.set()
 
     def _on_tilt(self, reading: Any) -> None:
@@ -151,6 +245,11 @@ class Daemon:
         self.core.on_tilt(reading)
         if self.core.mux.tilt.active is not before:
             self._kick()
+
+    def _on_tilt_lost(self) -> None:
+        """The tilt link lost its port or its readings went stale: a cycle now (zero)."""
+        self.core.mux.on_lost("tilt")
+        self._kick()
 
     def _kick(self) -> None:
         """A rider's command changed: the control loop runs an extra cycle at once and the link
@@ -174,7 +273,9 @@ class Daemon:
         if cfg.rider.tilt.enabled:
             from omnid.devices.tilt import TiltSensorLink
 
-            self.tilt = TiltSensorLink(cfg.tilt_sensor, on_reading=self._on_tilt)
+            self.tilt = TiltSensorLink(
+                cfg.tilt_sensor, on_reading=self._on_tilt, on_lost=self._on_tilt_lost
+            )
             await self.tilt.start()  # opens (and re-opens after an unplug) in the background
             self._closers.append(self.tilt.stop)
             if cfg.rider.tilt.neutral_calibration_s > 0:
@@ -206,7 +307,19 @@ class Daemon:
                 await asyncio.wait_for(self._stop.wait(), timeout=1.0)
 
     # ---- the control loop ---------------------------------------------------------------
+    def _camera_ok(self, now: float) -> bool:
+        """The cameras deliver: no error since the last pair, no pair awaited for longer than
+        ``perception.camera_silence_s``."""
+        if not self.config.perception.enabled:
+            return True
+        waiting = self._camera_wait_s
+        silent = waiting is not None and now - waiting > self.config.perception.camera_silence_s
+        return not (self._camera_failed or silent)
+
     def _cycle(self, now: float, urgent: bool = False) -> None:
+        if self._injected == "cycle":
+            self._injected = None
+            raise RuntimeError("injected fault: an exception in a control cycle")
         healthy = self.link.status is not None
         if healthy != self._link_was_ok and (healthy or self._link_was_ok is not None):
             was = self._link_was_ok
@@ -217,23 +330,92 @@ class Daemon:
                 if was is None:
                     log.info("control unit link up")
                 else:
-                    log.warning("control unit link back")
+                    self._throttle.warning("link back", "control unit link back")
             else:
-                log.error(
-                    "control unit link lost (%s): wheels stop once no status for %.2f s",
+                self._throttle.error(
+                    "link lost",
+                    "control unit link lost (%s): wheels stopped",
                     self.link.health.last_error,
-                    self.config.control.status_timeout_s,
                 )
-        # a port that is gone stops at once; missed replies stop after status_timeout_s (the
-        # unit's own watchdog time), so one noisy exchange on the bus does not brake the chair
-        self.core.link_ok = self.link.health.connected
+        self.core.link_ok = healthy  # unhealthy (port gone, replies missed): zero at once
+        camera_ok = self._camera_ok(now)
+        if camera_ok != self.core.camera_ok:
+            self.core.camera_ok = camera_ok
+            if self.recording is not None:
+                self.recording.on_fault("camera", "back" if camera_ok else "lost", now)
+            if camera_ok:
+                self._throttle.info("camera back", "cameras deliver again")
+            else:
+                self._throttle.warning(
+                    "camera lost",
+                    "cameras deliver nothing: speed capped at %.0f mm/s",
+                    self.config.safety.camera_lost_speed_mm_s,
+                )
         js = self.joystick
         if js is not None:
             reading = js.latest
             if reading is not None:
                 self.core.on_joystick(reading)
+            elif self._joystick_live:  # the link stopped vouching for it: lost now
+                self.core.mux.on_lost("joystick")
+            self._joystick_live = reading is not None
         cmd = self.core.step(now)
-        self.link.set_command(cmd, urgent=urgent)
+        self.link.set_command(cmd, urgent=urgent, computed_s=now)
+
+    def _guarded_cycle(self, now: float, urgent: bool = False) -> bool:
+        """One cycle under the supervisor's guard; False if it failed (zero went out)."""
+        try:
+            self._cycle(now, urgent)
+        except Exception as exc:
+            self.stats.failed_cycles += 1
+            self._failed_in_a_row += 1
+            self.link.stop_now()  # zero on the wire at once, whatever state the cycle left
+            if self.recording is not None:
+                with contextlib.suppress(Exception):
+                    self.recording.on_fault("control_cycle", repr(exc))
+            with contextlib.suppress(Exception):
+                self.core.fault("cycle_exception", now)
+            if self._throttle.error(
+                "cycle",
+                "control cycle failed (%d so far): %r; wheels stopped",
+                self.stats.failed_cycles,
+                exc,
+            ):
+                log.debug("control cycle exception", exc_info=True)
+            if self._failed_in_a_row >= _MAX_FAILED_CYCLES:
+                log.critical(
+                    "control loop failed %d cycles in a row: exiting for a restart",
+                    self._failed_in_a_row,
+                )
+                self.exit_code = EXIT_LOOP_DIED
+                self.request_stop()
+            return False
+        self._failed_in_a_row = 0
+        return True
+
+    def _loop_healthy(self, now: float, cycle_ok: bool, late_s: float) -> bool:
+        """What WATCHDOG=1 vouches for: this cycle succeeded, on time, and the link task runs."""
+        return (
+            cycle_ok and late_s <= self.config.control_unit.max_command_age_s and self.link.running
+        )
+
+    def _inject(self, what: str) -> None:
+        """A fault asked for by a signal under ``--inject-faults``."""
+        log.warning("fault injection: %s", what)
+        self._injected = what
+        self._wake.set()
+
+    def _control_loop_done(self, task: asyncio.Task[None]) -> None:
+        """The supervisor: the control loop's task ended. Unless a stop was asked for, the
+        wheels get zero at once and the daemon exits for systemd to restart it."""
+        if self._stop.is_set():
+            return
+        exc = None if task.cancelled() else task.exception()
+        log.critical("control loop died (%r): wheels stopped, exiting for a restart", exc)
+        with contextlib.suppress(Exception):
+            self.link.stop_now()
+        self.exit_code = EXIT_LOOP_DIED
+        self.request_stop()
 
     async def control_loop(self) -> None:
         period = self.config.control.period_s
@@ -243,6 +425,11 @@ class Daemon:
         next_watchdog = t0
         wd = self.notifier.watchdog_s
         while not self._stop.is_set():
+            if self._injected == "die":
+                raise RuntimeError("injected fault: the control loop dies")
+            if self._injected == "stall":
+                self._injected = None
+                time.sleep(float(os.environ.get("OMNID_INJECT_STALL_S", "2.2")))
             deadline = t0 + k * period
             now = time.monotonic()
             if now < deadline:
@@ -257,7 +444,7 @@ class Daemon:
                     self._kicked = False
                     if now - self._last_kick_s >= 0.005:  # a flood of lines: grid only
                         self._last_kick_s = now
-                        self._cycle(now, urgent=True)
+                        self._guarded_cycle(now, urgent=True)
                     continue  # then on to the same deadline
                 now = time.monotonic()
             late = now - deadline
@@ -268,9 +455,11 @@ class Daemon:
                 deadline = t0 + k * period
                 late = now - deadline
             self.stats.record(late)
-            self._cycle(now)
+            ok = self._guarded_cycle(now)
             self._last_cycle_s = now
-            if wd is not None and now >= next_watchdog:
+            self._next_grid_s = t0 + (k + 1) * period  # perception enters clouds in the gaps
+            self._cycle_done.set()
+            if wd is not None and now >= next_watchdog and self._loop_healthy(now, ok, late):
                 self.notifier.watchdog()
                 next_watchdog = now + wd / 2
             if now >= next_status:
@@ -295,7 +484,8 @@ class Daemon:
     async def _read(self, camera: Any) -> Frame:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
-        return Frame(frame_time(float(t_cam), t_req, time.monotonic()), (img1, img2))
+        t = frame_time(float(t_cam), t_req, time.monotonic())
+        return Frame(t - self.config.camera.frame_latency_s, (img1, img2))
 
     def _perception_error(self, what: str, exc: BaseException | str) -> None:
         self.stats.perception_errors += 1
@@ -317,24 +507,24 @@ class Daemon:
         self.core.laser_on = cycle.laser_on
         self.core.capturing = cycle.capturing
 
-    async def _capture_wait(self, until_s: float) -> None:
-        """Sleep until ``until_s``, a laser report or a stop request, whichever comes first."""
-        rest = until_s - time.monotonic()
-        if rest <= 0.0:
+    async def _wait_any(self, events: list[asyncio.Event], timeout_s: float) -> None:
+        """Until one of ``events`` (or a stop request) is set, at most ``timeout_s``."""
+        if timeout_s <= 0.0:
             return
-        self._capture_wake.clear()
-        waits = [asyncio.ensure_future(e.wait()) for e in (self._capture_wake, self._stop)]
+        waits = [asyncio.ensure_future(e.wait()) for e in (*events, self._stop)]
         try:
-            await asyncio.wait(waits, timeout=min(rest, 1.0), return_when=asyncio.FIRST_COMPLETED)
+            await asyncio.wait(waits, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
         finally:
             for w in waits:
                 w.cancel()
 
     async def perception_loop(self) -> None:
+        """The capture cycle's driver: it polls the cycle when a reply, a frame or one of the
+        cycle's own deadlines comes, puts its laser request on the wire at once (an extra
+        control cycle, as for a rider's command), and hands its jobs to the perceiver. Frames
+        are read by :meth:`_frame_reader`, jobs perceived by :meth:`_perceiver` (both tasks)."""
         from omnid.daemon.capture import pipeline_arguments
-        from omnid.daemon.perception_worker import PerceptionFailed, PerceptionWorker
-        from omnid.devices.camera import open_camera
-        from omnid.errors import DeviceError
+        from omnid.daemon.perception_worker import PerceptionWorker
 
         cfg = self.config
         p = cfg.perception
@@ -345,68 +535,151 @@ class Daemon:
             settings,
             timeout_s=p.worker_timeout_s,
             nice=p.worker_nice,
+            rig_x_offset_mm=p.rig_x_offset_mm,
         )
         self._closers.append(self.worker.close)
         await self.worker.start()
-        cycle = self.capture_cycle
-        camera: Any = None
+        # the cycle starts now: its first laser request is the one the core has been sending
+        cycle = self.capture_cycle = CaptureCycle(
+            CaptureSettings.from_config(cfg), start_s=time.monotonic()
+        )
+        helpers = [
+            asyncio.create_task(self._frame_reader(cycle), name="frames"),
+            asyncio.create_task(self._perceiver(), name="perceive"),
+        ]
+        try:
+            while not self._stop.is_set():
+                self._capture_wake.clear()
+                try:
+                    before = cycle.laser_on
+                    for out in cycle.poll(time.monotonic()):
+                        if isinstance(out, CaptureFailure):
+                            self._perception_error(out.kind, out.message)
+                            self._camera_reset |= out.kind == "camera"
+                            continue
+                        self._jobs.append(out)
+                        while len(self._jobs) > max(1, cycle.settings.mask_every_frames - 1):
+                            self._jobs.popleft()
+                            self.stats.jobs_superseded += 1
+                        self._job_ready.set()
+                    self._apply_capture()
+                    if cycle.laser_on != before and cycle.settings.policy == "stream":
+                        self._kick()  # timed to the frames: the laser bit goes out now
+                    if cycle.wants_frame():
+                        self._frames_wanted.set()
+                except Exception as exc:  # a bug here must not end perception for good
+                    self._perception_error("internal", exc)
+                    log.debug("perception cycle exception", exc_info=True)
+                rest = min(cycle.next_poll_s - time.monotonic(), 0.1)
+                await self._wait_any([self._capture_wake], max(rest, 0.0005))
+        finally:
+            for t in helpers:
+                t.cancel()
+            for t in helpers:
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await t
+            self.stats.masks_taken = cycle.masks_taken
 
-        async def close_camera() -> None:
-            nonlocal camera
+    async def _frame_reader(self, cycle: CaptureCycle) -> None:
+        """Read frame pairs while the cycle wants them (flushing the queue first where it
+        asks); a camera that raises is closed and opened again (after 0.05 … 1 s)."""
+        from omnid.devices.camera import open_camera
+        from omnid.errors import DeviceError
+
+        camera: Any = None
+        flushed = -1
+        backoff = 0.05
+        try:
+            while not self._stop.is_set():
+                if not cycle.wants_frame():
+                    self._camera_wait_s = None  # none awaited: the cameras are not silent
+                    self._frames_wanted.clear()
+                    await self._wait_any([self._frames_wanted], 0.1)
+                    continue
+                try:
+                    if self._camera_wait_s is None:
+                        self._camera_wait_s = time.monotonic()  # camera health: awaited since
+                    if self._camera_reset and camera is not None:
+                        await camera.close()
+                        camera = None
+                    self._camera_reset = False
+                    if camera is None:
+                        camera = open_camera(self.config.camera)
+                    if cycle.flush_needed and flushed != cycle.frame_requests:
+                        await camera.flush()
+                        flushed = cycle.frame_requests
+                    frame = await self._read(camera)
+                    self._camera_wait_s, self._camera_failed = None, False
+                    backoff = 0.05
+                except (DeviceError, OSError) as exc:
+                    self._camera_failed = True
+                    cycle.frame_failed(f"{type(exc).__name__}: {exc}")
+                    self._capture_wake.set()
+                    if camera is not None:
+                        with contextlib.suppress(Exception):
+                            await camera.close()
+                        camera = None
+                    await self._wait_any([], backoff)
+                    backoff = min(2 * backoff, 1.0)
+                    continue
+                self.stats.frames_read += 1
+                cycle.on_frame(frame)
+                self._capture_wake.set()
+        finally:
             if camera is not None:
                 with contextlib.suppress(Exception):
                     await camera.close()
-                camera = None
 
+    async def _perceiver(self) -> None:
+        """Perceive the newest job in the worker, then enter the cloud into the map — in a gap
+        between control cycles, so that the map update never makes a cycle late."""
+        from omnid.daemon.perception_worker import PerceptionFailed
+
+        p = self.config.perception
         while not self._stop.is_set():
+            if not self._jobs:
+                self._job_ready.clear()
+                await self._wait_any([self._job_ready], 1.0)
+                continue
+            job = self._jobs.popleft()
             try:
-                for out in cycle.poll(time.monotonic()):
-                    if isinstance(out, CaptureFailure):
-                        self._perception_error(out.kind, out.message)
-                        if out.kind == "camera":
-                            await close_camera()
-                        continue
-                    self.stats.note(self.stats.capture_s, time.monotonic() - out.started_s)
-                    if out.masks:
-                        self.stats.note(self.stats.mask_to_base_s, out.t_s - out.masks[0].t_s)
-                    cap = out.stereo_capture()
-                    if self.recording is not None:
-                        self.recording.on_capture(cap)  # rate-limited, encoded off the loop
-                    w0 = time.monotonic()
-                    cloud = await self.worker.perceive(cap)
-                    t_done = time.monotonic()
-                    self.core.on_perception(cloud, out.t_s)
-                    self.stats.note(self.stats.perception_s, t_done - w0)
-                    self.stats.note(self.stats.perception_latency_s, time.monotonic() - out.t_s)
-                    self.stats.perception_cycles += 1
-                    if self.stats.perception_errors and self.stats.perception_cycles == 1:
-                        log.info("perception running (%d dots)", len(cloud))
-                self._apply_capture()
-                if not cycle.wants_frame():
-                    await self._capture_wait(cycle.next_poll_s)
-                    continue
-                try:
-                    if camera is None:
-                        camera = open_camera(cfg.camera)
-                    if cycle.flush_needed:
-                        await camera.flush()
-                    rest = max(cycle.frame_deadline_s - time.monotonic(), 0.001)
-                    cycle.on_frame(await asyncio.wait_for(self._read(camera), rest))
-                except TimeoutError as exc:
-                    if isinstance(exc, DeviceError):
-                        cycle.frame_failed(str(exc))
-                    # else: past the cycle's frame deadline; its next poll says so
-                except (DeviceError, OSError) as exc:
-                    cycle.frame_failed(f"{type(exc).__name__}: {exc}")
+                self.stats.note(self.stats.capture_s, time.monotonic() - job.started_s)
+                if job.masks:
+                    self.stats.note(self.stats.mask_to_base_s, job.t_s - job.masks[0].t_s)
+                if self.recording is not None:
+                    self.recording.on_capture(job.stereo_capture())  # rate-limited
+                motions = job.mask_motions if p.motion_compensation else ()
+                motions = tuple(motions) or (None,) * len(job.masks)
+                w0 = time.monotonic()
+                cloud = await self.worker.perceive_job(
+                    job.t_s,
+                    job.base.images,
+                    [m.images for m in job.masks],
+                    motions,
+                )
+                t_done = time.monotonic()
             except PerceptionFailed as exc:
                 self._perception_error("worker", exc)
-            except asyncio.CancelledError:
-                raise
-            except Exception as exc:  # a bug here must not end perception for good
+                continue
+            except Exception as exc:
                 self._perception_error("internal", exc)
-                log.debug("perception cycle exception", exc_info=True)
-                await self._capture_wait(time.monotonic() + 0.01)
-        await close_camera()
+                log.debug("perceiver exception", exc_info=True)
+                continue
+            # a map update takes milliseconds: not just before a control cycle is due
+            if self._next_grid_s - time.monotonic() < ENTER_MARGIN_S:
+                self._cycle_done.clear()
+                await self._wait_any([self._cycle_done], 2 * self.config.control.period_s)
+            self.core.on_perception(cloud, job.t_s)
+            now = time.monotonic()
+            st = self.stats
+            st.note(st.perception_s, t_done - w0)
+            st.note(st.perception_latency_s, now - job.t_s)
+            st.perception_cycles += 1
+            st.perception_last_s = now
+            if st.perception_first_s is None:
+                st.perception_first_s = now
+            if st.perception_errors and st.perception_cycles == 1:
+                log.info("perception running (%d dots)", len(cloud))
 
     # ---- life cycle ---------------------------------------------------------------------
     def _on_sighup(self) -> None:
@@ -444,8 +717,12 @@ class Daemon:
         new.status, new.perception_time_s = old.status, old.perception_time_s
         new.odometry, new.motion.ramp.v_mm_s = old.odometry, old.motion.ramp.v_mm_s
         new.motion.ramp.omega_rad_s = old.motion.ramp.omega_rad_s
-        new.laser_on, new.capturing, new.rearm_after = old.laser_on, old.capturing, old.rearm_after
-        new.link_ok = old.link_ok
+        new.laser_on, new.capturing = old.laser_on, old.capturing
+        new.link_ok, new.camera_ok = old.link_ok, old.camera_ok
+        new.path_mm, new._poses = old.path_mm, old._poses
+        new._live_inputs, new._last_step_s = old._live_inputs, old._last_step_s
+        new.arming = old.arming
+        new.arming.enabled = new.config.control.rearm_after_fault
         if new.config.rider == old.config.rider:
             new.mux = old.mux
         elif old.config.rider.tilt.neutral_calibration_s > 0 and not old.mux.tilt.calibrating:
@@ -468,6 +745,11 @@ class Daemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
         loop.add_signal_handler(signal.SIGHUP, self._on_sighup)
+        if self._inject_faults:
+            log.warning("fault injection enabled (tools/fault_figures.py): never on a chair")
+            loop.add_signal_handler(signal.SIGUSR1, self._inject, "die")
+            loop.add_signal_handler(signal.SIGUSR2, self._inject, "cycle")
+            loop.add_signal_handler(signal.SIGRTMIN, self._inject, "stall")
         if self.config.perception.enabled:
             # heavy imports now, before the control loop runs (an import inside a task would
             # hold the event loop for hundreds of ms)
@@ -483,7 +765,9 @@ class Daemon:
         await self.link.start()
         try:
             await self._start_inputs()
-            self._tasks.append(asyncio.create_task(self.control_loop(), name="control"))
+            control = asyncio.create_task(self.control_loop(), name="control")
+            control.add_done_callback(self._control_loop_done)
+            self._tasks.append(control)
             if self.config.perception.enabled:
                 self._tasks.append(asyncio.create_task(self.perception_loop(), name="perception"))
             self.notifier.ready("running")
@@ -495,7 +779,7 @@ class Daemon:
         finally:
             self.notifier.stopping("stopping the chair")
             await self._shutdown()
-        return 0
+        return self.exit_code
 
     async def _shutdown(self) -> None:
         """Bring the chair to a stop (emergency rate), then close everything."""
@@ -508,14 +792,15 @@ class Daemon:
                 await asyncio.wait_for(t, timeout=2.0)
         period = self.config.control.period_s
         end = time.monotonic() + 2.0
-        while time.monotonic() < end:
+        while time.monotonic() < end and self.exit_code == 0:  # a dead loop: zero, no ramp
+            now = time.monotonic()
             self.core.link_ok = self.link.status is not None
-            cmd = self.core.step(time.monotonic())
-            self.link.set_command(cmd)
+            cmd = self.core.step(now)
+            self.link.set_command(cmd, computed_s=now)
             if cmd.left_duty == 0.0 and cmd.right_duty == 0.0:
                 break
             await asyncio.sleep(period)
-        self.link.set_command(WheelCommand.stop())
+        self.link.stop_now()
         await asyncio.sleep(2 * self.config.control_unit.command_period_s)
         for close in reversed(self._closers):
             with contextlib.suppress(Exception):
@@ -532,6 +817,7 @@ def main(
     stats_out: str | None = None,
     record: str | None = None,
     view: str | None = None,
+    inject_faults: bool = False,
 ) -> int:
     """Load the configuration and calibration (errors name file and key) and run until
     SIGTERM; ``stats_out``: write :class:`LoopStats` there as JSON at exit; ``record`` /
@@ -553,14 +839,14 @@ def main(
     daemon_ref: list[Daemon] = []
 
     async def amain() -> int:
-        d = Daemon(holder, calibration=checks.calibration)
+        d = Daemon(holder, calibration=checks.calibration, inject_faults=inject_faults)
         daemon_ref.append(d)
         return await d.run()
 
     rc = asyncio.run(amain())
     if daemon_ref and daemon_ref[0].stats.cycles:
         st = daemon_ref[0].stats
-        lat = sorted(st.lateness_s)
+        lat = sorted(st.lateness_s.values())
         p99 = lat[min(len(lat) - 1, math.ceil(0.99 * len(lat)) - 1)]
         log.info(
             "control loop: %d cycles, %d skipped, lateness p99 %.2f ms; perception: %d cycles, "
@@ -572,8 +858,7 @@ def main(
             st.perception_errors,
         )
         if stats_out:
-            import dataclasses
             import json
 
-            Path(stats_out).write_text(json.dumps(dataclasses.asdict(st)))
+            Path(stats_out).write_text(json.dumps(st.to_json()))
     return rc

@@ -84,6 +84,8 @@ class Reason(Enum):
     UNKNOWN_CREEP = "unknown_creep"  # ... crossed at creep speed (policy creep, blind band)
     BUMP = "bump"  # a wheel did not turn as commanded: stopped, that direction refused
     PERCEPTION_STALE = "perception_stale"
+    CALIBRATION_LOST = "calibration_lost"  # the captures no longer fit the calibration
+    CAMERA_LOST = "camera_lost"  # the cameras deliver nothing: speed capped until they do
     RIDER_STOP = "rider_stop"
     INPUT_STALE = "input_stale"
     STATUS_STALE = "status_stale"
@@ -126,7 +128,13 @@ class SafetySettings(Settings):
     # rig offset + nearest dot − footprint front − margin (300 + 330 − 350 − 50 = 230), rounded
     # up; crossed at unknown_creep_speed_mm_s whatever the policy (0: refused like the rest)
     front_blind_mm: float = setting(250.0, 0.0, 2000.0)
+    # perception older than this → no forward motion; the stationary capture needs its period
+    # + ~0.2 s; with perception.capture: stream (a cloud every ~50 ms) 0.3 s is enough
     perception_timeout_s: float = setting(1.5, 0.05, 5.0)
+    # and no forward motion after this much travel since the newest perception's capture
+    perception_max_travel_mm: float = setting(250.0, 10.0, 5000.0)
+    # the cameras deliver nothing (perception.camera_silence_s): at most this speed at once
+    camera_lost_speed_mm_s: float = setting(100.0, 0.0, 1000.0)
     log_interval_s: float = setting(2.0, 0.1, 600.0)  # one log line per reason at most this often
     # escape moves in the stop zone (see the module docstring); 0 speed disables them
     # |v| cap of an escape move (0: no escapes, main's rule)

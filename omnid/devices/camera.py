@@ -68,6 +68,11 @@ class CameraSettings(Settings):
     exposure: float | None = setting(None, -100000.0, 100000.0)
     buffer_size: int = setting(1, 1, 32)  # frames the driver may queue (cv2.CAP_PROP_BUFFERSIZE)
     grayscale: bool = True
+    # the longest exposure of a frame, s (the capture cycle keeps laser switches out of it)
+    exposure_s: float = setting(0.008, 0.0001, 0.5)
+    # the middle of a frame's exposure is this long before its timestamp (a V4L2 read returns
+    # after the readout), s; subtracted from every timestamp
+    frame_latency_s: float = setting(0.0, 0.0, 1.0)
 
 
 def _gray(img: Any, grayscale: bool) -> Image:

@@ -1,16 +1,22 @@
 """The control-unit link: wheel commands out, clock counters and faults back (SPEC §4).
 
-:class:`ControlUnitLink` is the asyncio driver. Its own task sends the latest
-:class:`WheelCommand` every ``command_period_s`` (a stop command until the daemon sets one),
-matches each reply to its command by sequence number, unwraps the int32 wheel clock counters into
-Python ints, counts errors (timeouts, CRC, sequence), and reconnects with back-off when the port
-disappears (USB adapter unplugged). Wire format: ``docs/protocol.md`` via
-:mod:`omnid.devices.cu_codec`.
+:class:`ControlUnitLink` is the asyncio driver. Its own task sends a frame every
+``command_period_s``, matches each reply to its command by sequence number, unwraps the int32
+wheel clock counters into Python ints, counts errors (timeouts, CRC, sequence), and reconnects
+with back-off when the port disappears (USB adapter unplugged). Wire format:
+``docs/protocol.md`` via :mod:`omnid.devices.cu_codec`.
+
+Freshness (:class:`FreshnessGate`): a frame carries the latest :class:`WheelCommand` only while a
+live control cycle computed it within the last two command periods (``max_command_age_s``);
+otherwise — no command yet, the control loop dead or late, the link itself stalled, the link
+unhealthy — the frame is zero duty with ENABLE cleared. Every frame carries the command's cycle
+number and age, so the unit refuses a stale or endlessly repeated command by itself too.
 
 Fail safe: the link is *unhealthy* when the port is gone or ``max_missed_replies`` replies in a row
-were missing or rejected. The moment that happens :attr:`ControlUnitLink.status` returns ``None``,
-``health.healthy`` is False and a warning is logged, so the daemon stops the chair; the unit's own
-watchdog stops the motors if our commands stop reaching it.
+were missing or rejected. The moment that happens the link sends a zero frame,
+:attr:`ControlUnitLink.status` returns ``None``, ``health.healthy`` is False and a warning is
+logged, so the daemon stops the chair; the unit's own watchdog stops the motors if our frames
+stop reaching it.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ __all__ = [
     "ControlUnitLink",
     "ControlUnitSettings",
     "ControlUnitStatus",
+    "FreshnessGate",
     "WheelCommand",
 ]
 
@@ -65,7 +72,14 @@ class WheelCommand:
         """Both motors off (brake), laser as given."""
         return cls(0.0, 0.0, laser_on=laser_on, enable=False)
 
-    def to_frame(self, seq: int, watchdog_ms: int = 0) -> codec.CommandFrame:
+    def to_frame(
+        self,
+        seq: int,
+        watchdog_ms: int = 0,
+        cycle: int = 0,
+        age_ms: int = 0,
+        max_age_ms: int = 0,
+    ) -> codec.CommandFrame:
         """The protocol frame for this command (``docs/protocol.md``, command payload)."""
         lmag, lrev = codec.duty_to_wire(self.left_duty)
         rmag, rrev = codec.duty_to_wire(self.right_duty)
@@ -75,7 +89,71 @@ class WheelCommand:
             | (codec.FLAG_LASER_ON if self.laser_on else 0)
             | (codec.FLAG_ENABLE if self.enable else 0)
         )
-        return codec.CommandFrame(seq, lmag, rmag, flags, watchdog_ms)
+        return codec.CommandFrame(seq, lmag, rmag, flags, watchdog_ms, cycle, age_ms, max_age_ms)
+
+
+class FreshnessGate:
+    """Which command a frame may carry (``docs/protocol.md``, "Freshness").
+
+    :meth:`submit` is called by the control cycle with each command and the monotonic time it
+    was computed; :meth:`frame` builds the next frame. It carries that command, numbered with
+    its cycle and stamped with its age, only while it is at most ``max_age_s`` old, the link is
+    healthy and the previous frame went out at most ``max_age_s`` ago; otherwise it is zero
+    duty with ENABLE cleared (laser as last asked): no command yet, a dead or late control loop,
+    a sender that stalled (the first frame after any stall is zero), an unhealthy link.
+    Shared by :class:`ControlUnitLink` and the simulator's emulated control unit, so both put
+    the same frames on the wire.
+    """
+
+    def __init__(self, max_age_s: float, watchdog_ms: int = 0) -> None:
+        self.max_age_s = max_age_s
+        self.watchdog_ms = watchdog_ms
+        self._max_age_ms = min(255, max(1, round(max_age_s * 1000)))
+        self.command = WheelCommand.stop()
+        self.computed_s: float | None = None
+        self.cycle = 0
+        self._last_frame_s: float | None = None
+        self.frames = 0
+        self.zeroed_frames = 0  # frames sent as zero although a command asked to drive
+        self.last_zero_reason = ""
+
+    def submit(self, cmd: WheelCommand, computed_s: float) -> None:
+        """A control cycle computed ``cmd`` at monotonic time ``computed_s``."""
+        self.command = cmd
+        self.computed_s = float(computed_s)
+        self.cycle = (self.cycle + 1) % codec.CYCLE_MODULUS
+
+    def age_s(self, now_s: float) -> float:
+        """Age of the latest command at ``now_s`` (inf before the first)."""
+        return math.inf if self.computed_s is None else now_s - self.computed_s
+
+    def frame(self, seq: int, now_s: float, healthy: bool = True) -> codec.CommandFrame:
+        """The frame to send now (see the class docstring)."""
+        cmd = self.command
+        age = self.age_s(now_s)
+        gap = math.inf if self._last_frame_s is None else now_s - self._last_frame_s
+        self._last_frame_s = now_s
+        self.frames += 1
+        reason = ""
+        if age > self.max_age_s:
+            reason = f"command {age * 1000:.0f} ms old"
+        elif gap > self.max_age_s:
+            reason = f"previous frame {gap * 1000:.0f} ms ago (sender stalled)"
+        elif not healthy:
+            reason = "link unhealthy"
+        if reason and (cmd.enable or cmd.left_duty or cmd.right_duty):
+            self.zeroed_frames += 1
+            self.last_zero_reason = reason
+        if reason:
+            cmd = WheelCommand.stop(laser_on=cmd.laser_on)
+        age_ms = codec.AGE_SATURATED_MS if not math.isfinite(age) else round(age * 1000)
+        return cmd.to_frame(
+            seq,
+            self.watchdog_ms,
+            cycle=self.cycle,
+            age_ms=min(max(age_ms, 0), codec.AGE_SATURATED_MS),
+            max_age_ms=self._max_age_ms,
+        )
 
 
 @dataclass(frozen=True)
@@ -130,7 +208,8 @@ class ControlUnitSettings(Settings):
     port: str = "/dev/omnid-control-unit"  # the udev name (etc/udev)
     baudrate: int = setting(115200, 9600, 921600)
     command_period_s: float = setting(0.02, 0.005, 0.2)
-    reply_timeout_s: float = setting(0.015, 0.002, 0.1)
+    # a reply later than this counts as missed (a reply takes ≈ 5.3 ms at 115200 baud)
+    reply_timeout_s: float = setting(0.010, 0.002, 0.1)
     unit_watchdog_s: float = setting(0.25, 0.02, 2.0)  # protocol: WATCHDOG_MS 20–2000
     max_missed_replies: int = setting(2, 1, 3)
     rs485: Rs485Options | None = None
@@ -157,6 +236,11 @@ class ControlUnitSettings(Settings):
         )
         require_reconnect(self.reconnect_initial_s, self.reconnect_max_s)
 
+    @property
+    def max_command_age_s(self) -> float:
+        """The oldest command a frame may carry: two command periods (docs/protocol.md)."""
+        return 2.0 * self.command_period_s
+
 
 @dataclass
 class ControlUnitHealth(LinkHealth):
@@ -178,6 +262,7 @@ class ControlUnitHealth(LinkHealth):
     consecutive_missed: int = 0
     unit_faults: int = 0
     unit_rx_errors: int = 0
+    zeroed_frames: int = 0  # frames sent as zero because the command was stale / link unhealthy
     fault_history: list[str] = field(default_factory=list)
 
     def copy(self) -> ControlUnitHealth:
@@ -217,28 +302,42 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         )
         self.settings = settings
         self._on_status = on_status
-        self._command = WheelCommand.stop()
+        self._gate = FreshnessGate(
+            settings.max_command_age_s, round(settings.unit_watchdog_s * 1000)
+        )
         self._parser = codec.FrameParser(accept=(codec.TYPE_REPLY,))
         self._seq = 0
         self._status: ControlUnitStatus | None = None
         self._last_raw: tuple[int, int] | None = None
         self._unwrapped = (0, 0)
         self._last_reply_t: float | None = None
-        self._watchdog_ms = round(settings.unit_watchdog_s * 1000)
 
     # -- public API (start/stop: PolledLink) ---------------------------------------------
-    def set_command(self, cmd: WheelCommand, urgent: bool = False) -> None:
-        """Make ``cmd`` the command sent from the next period on; ``urgent``: send it now
-        (the period grid stays; a rider's new command need not wait up to a period)."""
+    def set_command(
+        self, cmd: WheelCommand, urgent: bool = False, computed_s: float | None = None
+    ) -> None:
+        """Make ``cmd``, computed by a control cycle at monotonic ``computed_s`` (default: now),
+        the command the next frames carry while it is fresh (:class:`FreshnessGate`);
+        ``urgent``: send it now (the period grid stays; a rider's new command need not wait up
+        to a period)."""
         if not isinstance(cmd, WheelCommand):
             raise TypeError(f"set_command expects a WheelCommand, got {type(cmd).__name__}")
-        self._command = cmd
+        self._gate.submit(cmd, time.monotonic() if computed_s is None else computed_s)
         if urgent:
             self._wake_up()
 
+    def stop_now(self) -> None:
+        """Send a zero frame at once (a fault: the control loop failed or is gone)."""
+        self.set_command(WheelCommand.stop(laser_on=self._gate.command.laser_on), urgent=True)
+
     @property
     def command(self) -> WheelCommand:
-        return self._command
+        """The latest command the control cycle submitted (frames carry it only while fresh)."""
+        return self._gate.command
+
+    @property
+    def gate(self) -> FreshnessGate:
+        return self._gate
 
     @property
     def status(self) -> ControlUnitStatus | None:
@@ -270,6 +369,7 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         """A snapshot of connection state, last reply age and error counters."""
         self.status  # noqa: B018 - applies the task/age rule to ``healthy``
         h = self._health.copy()
+        h.zeroed_frames = self._gate.zeroed_frames
         if self._last_reply_t is not None:
             h.last_reply_age_s = time.monotonic() - self._last_reply_t
         return h
@@ -277,7 +377,7 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
     # -- internals -----------------------------------------------------------------------
     def _next_frame(self) -> codec.CommandFrame:
         self._seq = (self._seq + 1) & 0xFF
-        return self._command.to_frame(self._seq, self._watchdog_ms)
+        return self._gate.frame(self._seq, time.monotonic(), healthy=self._health.healthy)
 
     def _set_unhealthy(self, reason: str, warn: bool = True) -> None:
         h = self._health
@@ -287,7 +387,8 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
             h.fault_history.append(reason)
             del h.fault_history[:-20]
             if warn:
-                log.warning("control unit link unhealthy: %s", reason)
+                self._throttle.warning("unhealthy", "control unit link unhealthy: %s", reason)
+            self._wake_up()  # the next frame (zero: unhealthy) goes out now
 
     def _missed(self, reason: str) -> None:
         h = self._health
@@ -302,7 +403,9 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         if self._last_raw is None:
             self._unwrapped = raw
         elif rep.faults & codec.FAULT_RESET:
-            log.warning("control unit reset: clock counters restarted, odometry rebased")
+            self._throttle.warning(
+                "reset", "control unit reset: clock counters restarted, odometry rebased"
+            )
         else:
             self._unwrapped = (
                 self._unwrapped[0] + codec.unwrap_int32(self._last_raw[0], raw[0]),
@@ -310,7 +413,11 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
             )
         self._last_raw = raw
         if rep.faults & ~codec.FAULT_RESET and rep.faults != h.unit_faults:
-            log.warning("control unit faults: %s", ", ".join(codec.fault_names(rep.faults)))
+            self._throttle.warning(
+                f"faults {rep.faults}",
+                "control unit faults: %s",
+                ", ".join(codec.fault_names(rep.faults)),
+            )
         h.unit_faults = rep.faults
         h.unit_rx_errors = rep.rx_errors
         h.replies_ok += 1
@@ -319,12 +426,13 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         self._status = ControlUnitStatus.from_reply(rep, *self._unwrapped, now)
         if not h.healthy:
             h.healthy = True
-            log.info("control unit link healthy (seq %d)", rep.seq)
+            self._throttle.info("healthy", "control unit link healthy (seq %d)", rep.seq)
         if self._on_status is not None:
             try:
                 self._on_status(self._status)
             except Exception:
-                log.exception("control unit on_status callback failed")
+                if self._throttle.error("callback", "control unit on_status callback failed"):
+                    log.debug("on_status", exc_info=True)
 
     def _sync_parser_counters(self) -> None:
         h, p = self._health, self._parser
@@ -341,7 +449,7 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         self._set_unhealthy(reason)
 
     def _before_stop(self) -> None:
-        self._command = WheelCommand.stop()
+        self._gate.submit(WheelCommand.stop(), time.monotonic())
 
     async def _farewell(self, transport: Transport) -> None:
         """A final stop command (best effort: the unit's watchdog stops the motors anyway)."""
@@ -369,10 +477,10 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         crc_before = self._parser.crc_errors + self._parser.malformed
         got = False
         while not got:
+            # at the deadline still take what is already buffered: a reply that came in time
+            # while this task waited for the event loop is not a missed one
             remaining = deadline - loop.time()
-            if remaining <= 0:
-                break
-            data = await t.read_some(256, remaining)
+            data = await t.read_some(256, max(remaining, 0.0))
             if not data:
                 break
             for rep in self._parser.feed(data):

@@ -1,10 +1,10 @@
-"""Codec of the control-unit protocol, exactly as ``docs/protocol.md`` (version 1) defines it.
+"""Codec of the control-unit protocol, exactly as ``docs/protocol.md`` (version 2) defines it.
 
 Pure bytes in, frames out — no I/O — so both ends (driver and emulator) and the fuzz tests use it
 with plain byte strings::
 
     wire = encode_command(CommandFrame(seq=7, left_duty_pm=500, right_duty_pm=500,
-                                       flags=FLAG_ENABLE | FLAG_LASER_ON))
+                                       flags=FLAG_ENABLE | FLAG_LASER_ON, cycle=812, age_ms=3))
     parser = FrameParser(accept=(TYPE_COMMAND,))
     frames = parser.feed(wire)          # -> [CommandFrame(seq=7, ...)]
 
@@ -30,6 +30,7 @@ __all__ = [
     "FAULT_OVERCURRENT_RIGHT",
     "FAULT_RESET",
     "FAULT_RX_ERROR",
+    "FAULT_STALE_COMMAND",
     "FAULT_UNDERVOLTAGE",
     "FAULT_WATCHDOG",
     "FLAG_ENABLE",
@@ -48,6 +49,7 @@ __all__ = [
     "ReplyFrame",
     "crc16",
     "crc16_ccitt_false_table",
+    "cycle_ahead",
     "decode_frame",
     "duty_to_wire",
     "encode_command",
@@ -60,11 +62,11 @@ __all__ = [
 START = 0xA5
 TYPE_COMMAND = 0x01
 TYPE_REPLY = 0x81
-COMMAND_LEN = 7
+COMMAND_LEN = 11
 REPLY_LEN = 15
 HEADER_LEN = 4
 CRC_LEN = 2
-COMMAND_FRAME_LEN = HEADER_LEN + COMMAND_LEN + CRC_LEN  # 13
+COMMAND_FRAME_LEN = HEADER_LEN + COMMAND_LEN + CRC_LEN  # 17
 REPLY_FRAME_LEN = HEADER_LEN + REPLY_LEN + CRC_LEN  # 21
 _PAYLOAD_LEN = {TYPE_COMMAND: COMMAND_LEN, TYPE_REPLY: REPLY_LEN}
 
@@ -83,6 +85,7 @@ FAULT_OVERCURRENT_LEFT = 0x02
 FAULT_OVERCURRENT_RIGHT = 0x04
 FAULT_RX_ERROR = 0x08
 FAULT_UNDERVOLTAGE = 0x10
+FAULT_STALE_COMMAND = 0x20
 FAULT_RESET = 0x80
 FAULT_NAMES = {
     FAULT_WATCHDOG: "watchdog",
@@ -90,14 +93,18 @@ FAULT_NAMES = {
     FAULT_OVERCURRENT_RIGHT: "overcurrent_right",
     FAULT_RX_ERROR: "rx_error",
     FAULT_UNDERVOLTAGE: "undervoltage",
+    FAULT_STALE_COMMAND: "stale_command",
     FAULT_RESET: "reset",
 }
 
 DUTY_FULL_SCALE = 1000  # ‰
 WATCHDOG_MIN_MS = 20
 WATCHDOG_MAX_MS = 2000
+MAX_AGE_DEFAULT_MS = 40  # the unit's freshness limit when a command says MAX_AGE_MS = 0
+AGE_SATURATED_MS = 255  # AGE_MS of a command 255 ms old or older
+CYCLE_MODULUS = 1 << 16
 
-_CMD = struct.Struct(">HHBH")
+_CMD = struct.Struct(">HHBHHBB")
 _REPLY = struct.Struct(">iihhBBB")
 _HEADER = struct.Struct(">BBBB")
 _CRC = struct.Struct(">H")
@@ -134,13 +141,22 @@ def crc16(data: bytes | bytearray | memoryview) -> int:
 
 @dataclass(frozen=True, slots=True)
 class CommandFrame:
-    """A command, master → unit (protocol table "Command payload"). Duties are ‰ magnitudes."""
+    """A command, master → unit (protocol table "Command payload"). Duties are ‰ magnitudes.
+
+    ``cycle``: number of the control cycle that computed the command (+1 per computed command,
+    mod 2¹⁶); ``age_ms``: how old the command was when this frame was sent (255 = 255 ms or
+    more); ``max_age_ms``: the unit drives only on commands at most this old and holds one
+    cycle's command at most this long (0 = the unit's default 40 ms).
+    """
 
     seq: int
     left_duty_pm: int
     right_duty_pm: int
     flags: int
     watchdog_ms: int = 0
+    cycle: int = 0
+    age_ms: int = 0
+    max_age_ms: int = 0
 
     def __post_init__(self) -> None:
         if not 0 <= self.seq <= 0xFF:
@@ -155,6 +171,15 @@ class CommandFrame:
             raise ProtocolError(
                 f"command watchdog_ms {self.watchdog_ms} outside {WATCHDOG_MIN_MS}..{WATCHDOG_MAX_MS}"
             )
+        if not 0 <= self.cycle < CYCLE_MODULUS:
+            raise ProtocolError(f"command cycle {self.cycle} outside 0..{CYCLE_MODULUS - 1}")
+        if not 0 <= self.age_ms <= AGE_SATURATED_MS or not 0 <= self.max_age_ms <= 255:
+            raise ProtocolError("command age_ms/max_age_ms outside one byte")
+
+    @property
+    def enabled(self) -> bool:
+        """``ENABLE`` set: the unit may drive (still subject to the freshness rules)."""
+        return bool(self.flags & FLAG_ENABLE)
 
     @property
     def left_duty(self) -> float:
@@ -218,7 +243,15 @@ def encode_command(cmd: CommandFrame) -> bytes:
     return _frame(
         TYPE_COMMAND,
         cmd.seq,
-        _CMD.pack(cmd.left_duty_pm, cmd.right_duty_pm, cmd.flags, cmd.watchdog_ms),
+        _CMD.pack(
+            cmd.left_duty_pm,
+            cmd.right_duty_pm,
+            cmd.flags,
+            cmd.watchdog_ms,
+            cmd.cycle,
+            cmd.age_ms,
+            cmd.max_age_ms,
+        ),
     )
 
 
@@ -256,8 +289,7 @@ def decode_frame(frame: bytes | bytearray | memoryview) -> CommandFrame | ReplyF
         raise ProtocolError("frame: CRC mismatch")
     payload = frame[HEADER_LEN : HEADER_LEN + length]
     if ftype == TYPE_COMMAND:
-        left, right, flags, wd = _CMD.unpack(payload)
-        return CommandFrame(seq, left, right, flags, wd)
+        return CommandFrame(seq, *_CMD.unpack(payload))
     return ReplyFrame(seq, *_REPLY.unpack(payload))
 
 
@@ -374,6 +406,13 @@ def unwrap_int32(previous_raw: int, raw: int) -> int:
     ``delta = ((raw - previous_raw + 2**31) mod 2**32) - 2**31``.
     """
     return ((raw - previous_raw + 2**31) % 2**32) - 2**31
+
+
+def cycle_ahead(previous: int, cycle: int) -> int:
+    """How many cycles ``cycle`` is ahead of ``previous`` (mod 2¹⁶): 0 = a repeat, 1 … 32767
+    newer, negative = older (a replayed or reordered command)."""
+    d = (cycle - previous) % CYCLE_MODULUS
+    return d if d < CYCLE_MODULUS // 2 else d - CYCLE_MODULUS
 
 
 def fault_names(faults: int) -> tuple[str, ...]:

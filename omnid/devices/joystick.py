@@ -42,8 +42,10 @@ from urllib.parse import urlsplit
 from omnid.config import Settings, require, setting
 from omnid.devices.link import require_reconnect
 from omnid.errors import ConfigError, DeviceClosed, DeviceError
+from omnid.logs import LogThrottle
 
 log = logging.getLogger(__name__)
+_THROTTLE = LogThrottle(log, interval_s=5.0)  # a flapping connector must not flood the journal
 
 EV_SYN = 0x00
 EV_KEY = 0x01
@@ -276,7 +278,7 @@ class JoystickLink:
                     log.debug("joystick reopen failed: %s", exc)
                     continue
                 self.reconnects += 1
-                log.info("joystick %s back", self._target)
+                _THROTTLE.info("back", "joystick %s back", self._target)
                 break
 
     async def stop(self) -> None:
@@ -290,7 +292,7 @@ class JoystickLink:
     def _lost(self, why: str) -> None:
         self.errors += 1
         if self.connected:
-            log.warning("joystick %s lost: %s (rider input stops)", self._target, why)
+            _THROTTLE.warning("lost", "joystick %s lost: %s (rider input stops)", self._target, why)
         self.connected = False
 
     # --- evdev ----------------------------------------------------------------------------

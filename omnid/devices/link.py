@@ -16,7 +16,7 @@ that poll a device half-duplex (the control unit, the GS311 tilt sensor) share a
 - the wake-up event (:meth:`PolledLink._wake_up`): ends the current wait early (stop, an urgent
   command); a wake-up set during an exchange is not lost;
 - the shared health fields (:class:`LinkHealth`: connected, port_errors, reconnects,
-  last_error).
+  last_error), and rate-limited logging of what can repeat (``_throttle``).
 
 A link implements only :meth:`~PolledLink._on_open` (reset its parser), :meth:`~PolledLink._exchange`
 (one request → reply and its bookkeeping; returns whether the device answered) and, where it
@@ -37,6 +37,7 @@ from typing import ClassVar, Generic, TypeVar
 from omnid.config import require
 from omnid.devices.transport import Transport
 from omnid.errors import DeviceError
+from omnid.logs import LogThrottle
 
 __all__ = ["LinkHealth", "PolledLink", "require_reconnect"]
 
@@ -97,6 +98,8 @@ class PolledLink(Generic[H]):
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
         self._wake = asyncio.Event()
+        #: repeating messages (a flapping port) at most once per 5 s each
+        self._throttle = LogThrottle(self._log, interval_s=5.0)
 
     # -- public API ----------------------------------------------------------------------
     async def start(self) -> None:
@@ -135,6 +138,11 @@ class PolledLink(Generic[H]):
         self._health.connected = False
         self._on_stopped()
 
+    @property
+    def running(self) -> bool:
+        """The link's task exists and has not ended (what the daemon's watchdog vouches for)."""
+        return self._task is not None and not self._task.done()
+
     # -- hooks for the links -------------------------------------------------------------
     def _on_open(self) -> None:
         """Called after the port opened (reset parsers)."""
@@ -153,7 +161,9 @@ class PolledLink(Generic[H]):
 
     def _port_lost(self, port_name: str, reason: str) -> None:
         """Called after the port was dropped for ``reason`` (log, mark unhealthy)."""
-        self._log.warning("%s port %s lost: %s", self.device_name, port_name, reason)
+        self._throttle.warning(
+            "port lost", "%s port %s lost: %s", self.device_name, port_name, reason
+        )
 
     def _check_stale(self) -> None:
         """Called by the task after every exchange and failed open (log staleness even if
@@ -181,7 +191,7 @@ class PolledLink(Generic[H]):
             return False
         self._on_open()
         self._health.connected = True
-        self._log.info("%s port %s open", self.device_name, self._transport.name)
+        self._throttle.info("port open", "%s port %s open", self.device_name, self._transport.name)
         return True
 
     def _drop_transport(self, reason: str) -> None:
@@ -218,7 +228,10 @@ class PolledLink(Generic[H]):
                 if isinstance(exc, DeviceError):
                     self._drop_transport(self._port_error_reason(exc))
                 else:  # a bug must not leave a stale value looking valid, nor kill the task
-                    self._log.exception("%s link: unexpected error", self.device_name)
+                    if self._throttle.error(
+                        "internal", "%s link: unexpected error %r", self.device_name, exc
+                    ):
+                        self._log.debug("unexpected error", exc_info=True)
                     self._drop_transport(f"internal error: {exc!r}")
                 # back off before reopening: a port that opens but fails at once must not
                 # spin the event loop

@@ -13,7 +13,15 @@ client that dies or a terminal that hangs stops the chair.
 
 Access control is by file permission: the socket is created under a temporary name, given mode
 ``mode`` (default 0660) and group ``group`` (when set), and only then renamed to its final path,
-so it is never reachable with looser permissions. Each client's uid is logged (SO_PEERCRED).
+so it is never reachable with looser permissions. Each client's uid is logged (SO_PEERCRED,
+rate-limited).
+
+Fair limits: at most ``max_clients`` at a time; a client silent for ``idle_timeout_s`` is
+disconnected (the client sends ``ping`` to stay connected), and when all places are taken a new
+client takes the place of the one idle longest if that one has been silent for
+``evict_idle_s`` — a client that is driving sends key repeats and is never idle that long.
+Each client may send at most ``max_lines_per_s`` lines a second (a burst of a second's worth);
+lines beyond that are answered ``error rate limit`` and do nothing.
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ from typing import Literal
 
 from omnid.config import Settings, require, setting
 from omnid.errors import ConfigError, DeviceError
+from omnid.logs import LogThrottle
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +71,9 @@ class TeleopSettings(Settings):
     mode: int = setting(0o660, 0, 0o777)
     max_clients: int = setting(4, 1, 64)
     max_line_bytes: int = setting(64, 16, 4096)
+    idle_timeout_s: float = setting(30.0, 1.0, 3600.0)  # a silent client is disconnected
+    evict_idle_s: float = setting(2.0, 0.1, 3600.0)  # full: a client this idle makes room
+    max_lines_per_s: float = setting(50.0, 1.0, 1000.0)  # per client; beyond: refused
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -84,7 +96,11 @@ class TeleopServer:
         self.commands = 0
         self.errors = 0
         self._server: asyncio.Server | None = None
-        self._clients: set[asyncio.Task[None]] = set()
+        self._clients: dict[asyncio.Task[None], _Client] = {}
+        self._throttle = LogThrottle(log, interval_s=5.0, clock=clock)
+        self.refused = 0
+        self.evicted = 0
+        self.rate_limited = 0
 
     @property
     def path(self) -> Path:
@@ -128,8 +144,8 @@ class TeleopServer:
     async def stop(self) -> None:
         if self._server is not None:
             self._server.close()
-            for task in list(self._clients):
-                task.cancel()
+            for client in list(self._clients.values()):
+                client.writer.close()  # ends its read: the task finishes by itself
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
             self._server = None
@@ -152,42 +168,99 @@ class TeleopServer:
         shown = word[:20] + ("..." if len(word) > 20 else "")
         return f"error unknown command {shown!r} (known: {', '.join(COMMANDS)}, ping)"
 
+    def _make_room(self) -> bool:
+        """All places taken: evict the client idle longest if it has been idle long enough."""
+        s = self.settings
+        if len(self._clients) < s.max_clients:
+            return True
+        now = self.clock()
+        idlest = min(self._clients.values(), key=lambda c: c.last_s)
+        if now - idlest.last_s < s.evict_idle_s:
+            return False
+        self.evicted += 1
+        self._throttle.info(
+            "evict",
+            "teleop client (uid %s) idle %.0f s: disconnected to make room",
+            idlest.uid,
+            now - idlest.last_s,
+        )
+        with contextlib.suppress(Exception):
+            idlest.writer.write(b"error idle: disconnected to make room\n")
+        idlest.writer.close()
+        self._clients = {t: c for t, c in self._clients.items() if c is not idlest}
+        return True
+
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
-        if task is not None:
-            self._clients.add(task)
+        s = self.settings
         peer = _peer_uid(writer)
-        if len(self._clients) > self.settings.max_clients:
+        if task is None or not self._make_room():
+            self.refused += 1
+            self._throttle.warning("full", "teleop client (uid %s) refused: too many clients", peer)
             writer.write(b"error too many clients\n")
             writer.close()
-            if task is not None:
-                self._clients.discard(task)
             return
-        log.info("teleop client connected (uid %s)", peer)
+        client = _Client(writer, peer, self.clock(), s.max_lines_per_s)
+        self._clients[task] = client
+        self._throttle.info("connect", "teleop client connected (uid %s)", peer)
         try:
             while True:
                 try:
-                    raw = await reader.readuntil(b"\n")
+                    async with asyncio.timeout(s.idle_timeout_s):
+                        raw = await reader.readuntil(b"\n")
+                except TimeoutError:
+                    writer.write(b"error idle timeout\n")
+                    break
                 except asyncio.LimitOverrunError:
                     self.errors += 1
                     writer.write(b"error line too long\n")
                     break
                 except asyncio.IncompleteReadError:
                     break
-                if len(raw) > self.settings.max_line_bytes:
+                if len(raw) > s.max_line_bytes:
                     self.errors += 1
                     writer.write(b"error line too long\n")
                     break
-                reply = self.handle_line(raw.decode("ascii", errors="replace"))
+                now = self.clock()
+                client.last_s = now
+                if client.take(now):
+                    reply = self.handle_line(raw.decode("ascii", errors="replace"))
+                else:
+                    self.rate_limited += 1
+                    reply = "error rate limit"
                 writer.write(reply.encode() + b"\n")
                 await writer.drain()
         except (ConnectionError, OSError) as exc:
-            log.info("teleop client (uid %s) dropped: %s", peer, exc)
+            self._throttle.info("dropped", "teleop client (uid %s) dropped: %s", peer, exc)
+        except asyncio.CancelledError:
+            pass  # the server stops: end quietly (a cancelled handler is logged as an error)
         finally:
-            log.info("teleop client disconnected (uid %s)", peer)
+            self._throttle.info("disconnect", "teleop client disconnected (uid %s)", peer)
             writer.close()
-            if task is not None:
-                self._clients.discard(task)
+            self._clients.pop(task, None)
+
+
+class _Client:
+    """One connected client: its writer, uid, last activity and line budget (token bucket)."""
+
+    def __init__(
+        self, writer: asyncio.StreamWriter, uid: int | None, now_s: float, rate: float
+    ) -> None:
+        self.writer = writer
+        self.uid = uid
+        self.last_s = now_s
+        self.rate = rate
+        self.tokens = rate  # a second's worth of lines as the burst
+        self._t = now_s
+
+    def take(self, now_s: float) -> bool:
+        """Spend one line of the budget; False when it is used up."""
+        self.tokens = min(self.rate, self.tokens + (now_s - self._t) * self.rate)
+        self._t = now_s
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
 
 
 def _peer_uid(writer: asyncio.StreamWriter) -> int | None:
@@ -248,9 +321,11 @@ async def run_client(
     input_fd: int,
     echo: Callable[[str], None] = print,
     reply_timeout_s: float = 1.0,
+    keepalive_s: float = 10.0,
 ) -> int:
     """Send the keys read from ``input_fd`` to the teleop server; returns an exit code.
 
+    Without a key for ``keepalive_s`` it sends ``ping`` (the server disconnects silent clients).
     Ends on ``q`` (0), end of input (0), or a lost/unanswering server (1).
     """
     try:
@@ -263,15 +338,20 @@ async def run_client(
     decoder = KeyDecoder()
     try:
         while True:
-            await ready.wait()
-            ready.clear()
             try:
-                data = os.read(input_fd, 256)
-            except BlockingIOError:
-                continue
-            if not data:
-                return 0
-            for key in decoder.feed(data):
+                await asyncio.wait_for(ready.wait(), keepalive_s)
+            except TimeoutError:
+                keys: list[str] = ["ping"]
+            else:
+                ready.clear()
+                try:
+                    data = os.read(input_fd, 256)
+                except BlockingIOError:
+                    continue
+                if not data:
+                    return 0
+                keys = list(decoder.feed(data))
+            for key in keys:
                 if key == "quit":
                     return 0
                 writer.write(key.encode() + b"\n")
@@ -284,7 +364,8 @@ async def run_client(
                 if not reply:
                     echo("teleop: server closed the connection")
                     return 1
-                echo(f"{key}: {reply.decode(errors='replace').strip()}")
+                if key != "ping":
+                    echo(f"{key}: {reply.decode(errors='replace').strip()}")
     finally:
         loop.remove_reader(input_fd)
         writer.close()

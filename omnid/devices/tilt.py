@@ -6,8 +6,11 @@ command ``0x50 0x50`` and waits at most ``request_timeout_s`` for the ``0xA0`` r
 (:mod:`omnid.devices.gs311_codec`, whose docstring documents the assumed data layout).
 
 Fail safe: :attr:`TiltSensorLink.latest` is the newest reading only while it is younger than
-``stale_after_s``; otherwise it is ``None`` (logged once per episode) and the daemon treats the
-rider's head input as stop. When the adapter disappears (USB unplugged: EIO/EOF) the port is
+``stale_after_s``; otherwise it is ``None``. ``on_lost`` (optional) is called the moment the
+port is lost, or the sensor has left as many requests in a row unanswered as fit in
+``stale_after_s`` (4 at 10 ms: silent, or sending garbage), logged (rate-limited): the daemon
+treats the rider's head input as lost — zero at once, a control cycle run then. Requests the
+link did not send (the event loop stalled) are not held against the sensor. When the adapter disappears (USB unplugged: EIO/EOF) the port is
 closed and reopened with exponential back-off (``reconnect_initial_s`` doubling up to
 ``reconnect_max_s``); counters in :attr:`TiltSensorLink.health` record every outcome.
 
@@ -67,7 +70,8 @@ class TiltSettings(Settings):
     baudrate: int = setting(115200, 1200, 3_000_000)
     poll_period_s: float = setting(0.01, 0.002, 0.5)
     request_timeout_s: float = setting(0.008, 0.001, 0.5)
-    stale_after_s: float = setting(0.1, 0.004, 2.0)
+    # the link stops vouching for a reading this old (and says so at once: on_lost)
+    stale_after_s: float = setting(0.04, 0.004, 2.0)
     reconnect_initial_s: float = setting(0.05, 0.01, 10.0)
     reconnect_max_s: float = setting(1.0, 0.01, 60.0)
     hid_report_size: int = setting(64, 2, 1024)
@@ -200,6 +204,7 @@ class TiltSensorLink(PolledLink[TiltHealth]):
         on_reading: Callable[[TiltReading], None] | None = None,
         transport_factory: Callable[[], Transport] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        on_lost: Callable[[], None] | None = None,
     ) -> None:
         s = settings or TiltSettings()
         super().__init__(
@@ -211,6 +216,7 @@ class TiltSensorLink(PolledLink[TiltHealth]):
         )
         self.settings = s
         self._on_reading = on_reading
+        self._on_lost = on_lost
         self._clock = clock
         self._parser = codec.Gs311Parser(s.format)
         self._reading: TiltReading | None = None
@@ -222,12 +228,21 @@ class TiltSensorLink(PolledLink[TiltHealth]):
     def latest(self) -> TiltReading | None:
         """The newest reading if younger than ``stale_after_s``, else ``None`` (rider input = stop)."""
         r = self._reading
-        if r is None:
-            return None
-        if self._clock() - r.timestamp_s > self.settings.stale_after_s:
-            self._note_stale()
+        if r is None or self._clock() - r.timestamp_s > self.settings.stale_after_s:
             return None
         return r
+
+    @property
+    def _sensor_lost(self) -> bool:
+        """The sensor stopped answering: as many requests in a row unanswered as fit in
+        ``stale_after_s`` (a stalled event loop sends no requests, so it is not the sensor's
+        fault), or no reading for three times that (the link task itself stuck)."""
+        r = self._reading
+        if r is None:
+            return False
+        if self._health.consecutive_timeouts >= self._silent_limit:
+            return True
+        return self._clock() - r.timestamp_s > 3 * self.settings.stale_after_s
 
     @property
     def last_reading(self) -> TiltReading | None:
@@ -251,19 +266,33 @@ class TiltSensorLink(PolledLink[TiltHealth]):
             self._was_valid = False
             self._health.stale_episodes += 1
             age = self._clock() - self._reading.timestamp_s if self._reading else math.inf
-            log.warning(
-                "tilt sensor reading stale (%.0f ms old > %.0f ms): head input ignored (%s)",
+            self._throttle.warning(
+                "stale",
+                "tilt sensor reading stale (%.0f ms old > %.0f ms): head input lost (%s)",
                 age * 1000,
                 self.settings.stale_after_s * 1000,
                 self._health.last_error or "no reply",
             )
+            self._lost()
+
+    def _lost(self) -> None:
+        if self._on_lost is not None:
+            try:
+                self._on_lost()
+            except Exception:
+                log.exception("tilt sensor on_lost callback failed")
+
+    def _port_lost(self, port_name: str, reason: str) -> None:
+        self._throttle.warning("port", "tilt sensor port %s lost: %s", port_name, reason)
+        self._lost()
 
     # -- PolledLink hooks ----------------------------------------------------------------
     def _on_open(self) -> None:
         self._parser.reset()
 
     def _check_stale(self) -> None:
-        self.latest  # noqa: B018 - logs the stale transition even if nobody asks
+        if self._sensor_lost:
+            self._note_stale()  # logs the transition and tells on_lost, even if nobody asks
 
     def _on_stopped(self) -> None:
         self._reading = None
@@ -280,8 +309,10 @@ class TiltSensorLink(PolledLink[TiltHealth]):
         h.requests += 1
         deadline = loop.time() + self.settings.request_timeout_s
         while True:
+            # at the deadline still take what is already buffered (a reply in time while this
+            # task waited for the event loop)
             remaining = deadline - loop.time()
-            data = await t.read_some(64, remaining) if remaining > 0 else b""
+            data = await t.read_some(64, max(remaining, 0.0))
             if not data:
                 break
             frames = self._parser.feed(data)
@@ -292,7 +323,8 @@ class TiltSensorLink(PolledLink[TiltHealth]):
                 h.consecutive_timeouts = 0
                 if not self._was_valid:
                     self._was_valid = True
-                    log.info(
+                    self._throttle.info(
+                        "valid",
                         "tilt sensor readings valid (roll %.1f°, pitch %.1f°)",
                         f.roll_deg,
                         f.pitch_deg,
@@ -301,14 +333,16 @@ class TiltSensorLink(PolledLink[TiltHealth]):
                     try:
                         self._on_reading(self._reading)
                     except Exception:
-                        log.exception("tilt sensor on_reading callback failed")
+                        if self._throttle.error("callback", "tilt sensor on_reading failed"):
+                            log.debug("on_reading", exc_info=True)
                 return True
         h.timeouts += 1
         h.consecutive_timeouts += 1
         h.last_error = f"no valid reply within {self.settings.request_timeout_s * 1000:.0f} ms"
         if self._reading is None and h.consecutive_timeouts == self._silent_limit:
             # never had a reading: the stale warning would never fire, so say it here
-            log.warning(
+            self._throttle.warning(
+                "silent",
                 "tilt sensor on %s not answering (%d requests, %s): head input ignored",
                 t.name,
                 h.consecutive_timeouts,

@@ -3,7 +3,7 @@
 Each scene of :mod:`omnid.sim.scenes` is ray-cast (:func:`omnid.sim.world.cast_laser`) and
 rendered with cameras deliberately misaligned (mirror centres a few px off, f/K differing by a
 few %, rotations of 1.5° and −1°). The rig is calibrated on the floor capture alone
-(:func:`calibrate_from_capture`), then a scene is perceived with ``best`` or ``thesis`` (each
+and the installer's extra captures (:func:`calibrate_on_floor`), then a scene is perceived with ``best`` or ``thesis`` (each
 with its own detector, matcher and triangulation) and scored against the ray-cast truth:
 
     matched   correct matches / dots visible in both cameras (target ≥ 95 %)
@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from omnid.core.calibration import Calibration, calibrate_from_capture
+from omnid.core.calibration import Calibration
 from omnid.core.geometry import StereoRig
 from omnid.core.types import PointClass, PointCloud, StereoCapture
-from omnid.sim.laser import LaserProjector, ideal_lattice
+from omnid.sim.laser import LaserProjector
 from omnid.sim.render import RenderOptions, render_hits
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.scenes import Scene, floor_hits, get_scene
@@ -38,9 +38,9 @@ METHODS: tuple[str, ...] = ("best", "thesis")
 
 
 def scene_hits(scene: Scene, rig: StereoRig, laser: LaserProjector | None = None) -> LaserHits:
-    """Where the dots of ``laser`` (default: :func:`ideal_lattice`) fall in ``scene``, and which
-    mirror sees each."""
-    return cast_laser(scene.world, scene.pose, scene.mount, laser or ideal_lattice(), rig)
+    """Where the dots of ``laser`` (default: the simulator's physical
+    :class:`~omnid.sim.laser.LaserProjector`) fall in ``scene``, and which mirror sees each."""
+    return cast_laser(scene.world, scene.pose, scene.mount, laser or LaserProjector(), rig)
 
 
 def floor_capture(
@@ -50,7 +50,7 @@ def floor_capture(
     laser: LaserProjector | None = None,
 ) -> StereoCapture:
     """The empty floor at the rig's floor depth, as ``omnid calibrate`` wants it."""
-    return render_hits(rig, floor_hits(rig, laser or ideal_lattice()), seed, options)
+    return render_hits(rig, floor_hits(rig, laser or LaserProjector()), seed, options)
 
 
 def calibrate_on_floor(
@@ -59,9 +59,14 @@ def calibrate_on_floor(
     laser: LaserProjector | None = None,
     options: RenderOptions | None = None,
 ) -> Calibration:
-    """Calibration from a rendered capture of the empty floor (no other knowledge of ``rig``)."""
-    cap = floor_capture(rig, seed, options, laser)
-    return calibrate_from_capture(cap, rig.floor_depth_mm, rig.baseline_mm)
+    """Calibration as the installer makes it: the empty floor plus the extra captures (a box
+    and a wall ahead, :mod:`omnid.sim.installation`), no other knowledge of ``rig``."""
+    from omnid.sim.installation import calibrate_installed
+
+    cal: Calibration = calibrate_installed(
+        rig, laser or LaserProjector(), seed=seed, options=options
+    )
+    return cal
 
 
 def assign_truth(
@@ -123,7 +128,7 @@ def evaluate(
     laser: LaserProjector | None = None,
     options: RenderOptions | None = None,
 ) -> SceneRun:
-    """Render ``scene`` on ``rig`` with ``laser`` (default :func:`ideal_lattice`) and
+    """Render ``scene`` on ``rig`` with ``laser`` (default :class:`LaserProjector`) and
     ``options``, perceive it with ``method`` (its own detector) and score it."""
     from omnid.core.classify import ClassifySettings
     from omnid.core.pipeline import PerceptionSettings, perceive

@@ -44,6 +44,9 @@ from omnid.record.settings import RecordSettings
 log = logging.getLogger(__name__)
 
 MB = 1024 * 1024
+#: the writer thread pauses after this many records (see :meth:`Recorder._drain`)
+SLICE_RECORDS = 4
+SLICE_PAUSE_S = 0.0002
 
 
 def require_recording_libraries() -> None:
@@ -223,6 +226,9 @@ class Recorder:
         self.bytes_written = 0
         self.failed: str | None = None
         self._failed_at = -math.inf
+        self.busy_s = 0.0  # writer time spent encoding and writing
+        self.slice_max_s = 0.0  # its longest stretch without a GIL hand-back
+        self.slices_over_half_ms = 0
         self._files = SegmentFiles(settings.path) if self.write_file else None
         self.segment: McapSegment | None = None
         self.segments: list[Path] = []
@@ -267,6 +273,7 @@ class Recorder:
         """Open the first segment and the live view (failures logged, never raised), then
         start the writer thread."""
         require_recording_libraries()
+        _warm_up()  # imports and first calls here, not on the writer thread mid-ride
         if self.write_file:
             self._open_segment()
         addr = self.settings.view_address
@@ -324,9 +331,23 @@ class Recorder:
     def _drain(self) -> None:
         q = self._queue
         handlers = _HANDLERS
+        n = 0
+        clock = time.perf_counter
+        t_slice = clock()
         while q:
+            n += 1
+            if self.threaded and n % SLICE_RECORDS == 0:
+                # hand the GIL back between slices: a control cycle waking now waits for at
+                # most one slice, not for the whole batch
+                now = clock()
+                self._note_slice(now - t_slice)
+                time.sleep(SLICE_PAUSE_S)
+                t_slice = clock()
             kind, t_s, payload = q.popleft()
             t_ns = round(t_s * 1e9) + self.clock_offset_ns
+            if kind == "capture":  # PNG encoding releases the GIL: not a stretch that holds it
+                t_cap = clock()
+                self._note_slice(t_cap - t_slice)
             try:
                 out = handlers[kind](self, t_ns, t_s, payload)
             except Exception as exc:
@@ -337,8 +358,25 @@ class Recorder:
                     )
                 self.dropped += 1
                 continue
+            if kind == "capture":
+                for topic, data in out:
+                    self._emit(topic, t_ns, data)
+                t_slice = clock()
+                self.busy_s += t_slice - t_cap
+                continue
             for topic, data in out:
                 self._emit(topic, t_ns, data)
+        if n:
+            self._note_slice(clock() - t_slice)
+
+    def _note_slice(self, seconds: float) -> None:
+        """Writer time between two GIL hand-backs (PNG encoding of captures, which releases
+        the GIL itself, excluded; zstd of a finished chunk included): about the most a control
+        cycle can wait for the writer."""
+        self.busy_s += seconds
+        self.slice_max_s = max(self.slice_max_s, seconds)
+        if seconds > 0.0005:
+            self.slices_over_half_ms += 1
 
     def _emit(self, topic: str, t_ns: int, data: bytes) -> None:
         if topic in tp.LATCHED:
@@ -405,6 +443,9 @@ class Recorder:
             "bytes": self.bytes_written,
             "segment": str(self.segment.path) if self.segment is not None else "",
             "failed": self.failed or "",
+            "busy_s": self.busy_s,
+            "slice_max_ms": 1e3 * self.slice_max_s,
+            "slices_over_half_ms": self.slices_over_half_ms,
         }
         self._emit(tp.RECORDER, round(t * 1e9) + self.clock_offset_ns, tp.json_bytes(doc))
 
@@ -651,6 +692,23 @@ _HANDLERS: dict[str, Callable[[Recorder, int, float, Any], Out]] = {
     "sim": _sim,
     "world": _world,
 }
+
+
+def _warm_up() -> None:
+    """Import and run every encoder once (the first call of foxglove's message types and of
+    OpenCV's PNG encoder costs tens of ms with the GIL held)."""
+    import cv2
+    import mcap.writer  # noqa: F401
+
+    tp.compressed_image(0, "camera1", cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes())
+    tp.point_cloud(0, np.zeros((1, 3)), np.zeros(1, np.uint8))
+    tp.grid(0, np.zeros((2, 2), np.int8), 0.0, 0.0, 50.0)
+    tp.frame_transforms([tp.transform(0, "a", "b", 0.0, 0.0, 0.0, tp.rig_rotation())])
+    tp.pose_in_frame(0, "odom", 0.0, 0.0, 0.0)
+    tp.log_message(0, logging.INFO, "omnid", "", "", 0)
+    tp.world_scene(0, [(0.0, 1.0, 0.0, 1.0, 1.0)], [])
+    for topic in (*tp.JSON_SCHEMAS, *tp.PROTO_TOPICS):
+        tp.schema_of(topic)
 
 
 class RecorderLogHandler(logging.Handler):

@@ -132,7 +132,18 @@ JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
     FAULTS: ("omnid.Fault", _obj(t_s="n", name="s", event="s", detail="s")),
     RECORDER: (
         "omnid.RecorderStats",
-        _obj(t_s="n", queued="i", dropped="i", written="i", bytes="i", segment="s", failed="s"),
+        _obj(
+            t_s="n",
+            queued="i",
+            dropped="i",
+            written="i",
+            bytes="i",
+            segment="s",
+            failed="s",
+            busy_s="n",
+            slice_max_ms="n",
+            slices_over_half_ms="i",
+        ),
     ),
     SIM_TRUTH: (
         "omnid.SimTruth",
@@ -202,7 +213,10 @@ def _finite(v: Any) -> Any:
 
 def json_bytes(doc: dict[str, Any]) -> bytes:
     """Compact JSON; non-finite numbers become null (JSON has no inf/NaN)."""
-    return json.dumps(_finite(doc), separators=(",", ":")).encode()
+    try:
+        return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
+    except ValueError:  # an inf or NaN somewhere (rare: clearance with nothing ahead)
+        return json.dumps(_finite(doc), separators=(",", ":")).encode()
 
 
 def _ts(t_ns: int) -> Any:

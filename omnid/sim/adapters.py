@@ -7,7 +7,8 @@ Each part comes in two kinds, chosen by :class:`~omnid.sim.settings.SimSettings`
 * ``direct`` — the same behaviour without the byte link (for probes and fast tests).
 
 A control-unit adapter has ``exchange(command, now_s) -> status | None``,
-``advance(now_s, dt_s)`` (the plant runs), ``laser_on`` and ``watchdog_trips``; a tilt adapter
+``advance(now_s, dt_s)`` (the plant runs), ``laser_on``, ``laser_switches`` (when the laser
+actually switched: what the simulated cameras expose by) and ``watchdog_trips``; a tilt adapter
 has ``poll(now_s) -> TiltReading | None`` and ``unplugged``.
 """
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from typing import Any
 
 from omnid.devices.control_unit import ControlUnitStatus
@@ -47,6 +49,7 @@ class DirectControlUnit:
         self.seq = 0
         self.watchdog_trips = 0
         self.silent = False  # a hung unit: takes no command, sends no reply
+        self.laser_switches: deque[tuple[float, bool]] = deque(maxlen=256)  # (t_s, on)
 
     def exchange(self, command: Any, now_s: float) -> Any:
         """Deliver one command at ``now_s``; return the reply (None while ``silent``)."""
@@ -57,6 +60,8 @@ class DirectControlUnit:
         on = bool(command.enable)
         self.left_duty = float(command.left_duty) if on else 0.0
         self.right_duty = float(command.right_duty) if on else 0.0
+        if bool(command.laser_on) != self.laser_on:
+            self.laser_switches.append((now_s, bool(command.laser_on)))
         self.laser_on = bool(command.laser_on)
         left, right = self.plant.clocks()
         return ControlUnitStatus(
@@ -81,24 +86,45 @@ class EmulatedControlUnit:
     """The project's control-unit emulator (``omnid.devices.emulators.control_unit``) on the
     virtual clock, every command and reply passing as bytes through the protocol codec.
 
-    It is the same code that serves a pty on the bench: it enforces its own watchdog, switches
-    the laser relay with its delay, and integrates the plant (the chair) lazily up to the clock.
+    It is the same code that serves a pty on the bench: it enforces its own watchdog and the
+    command freshness rules, switches the laser relay with its delay, and integrates the plant
+    (the chair) lazily up to the clock. Frames are built by the driver's own
+    :class:`~omnid.devices.control_unit.FreshnessGate` (cycle number, age, zero while the link
+    would be unhealthy after ``max_missed_replies`` missed replies), as ``omnid run`` sends them.
     """
 
-    def __init__(self, plant: Chair, watchdog_s: float = 0.25) -> None:
+    def __init__(
+        self,
+        plant: Chair,
+        watchdog_s: float = 0.25,
+        command_period_s: float = 0.02,
+        max_missed_replies: int = 2,
+        laser_delay_s: float = 0.02,
+        laser_jitter_s: float = 0.0,
+        seed: int = 0,
+    ) -> None:
         from omnid.devices import cu_codec as codec
+        from omnid.devices.control_unit import FreshnessGate
         from omnid.devices.emulators.control_unit import ControlUnitEmulator
 
         self._codec = codec
         self._t = 0.0
         self.emulator = ControlUnitEmulator(
-            plant=plant, clock=lambda: self._t, default_watchdog_s=watchdog_s
+            plant=plant,
+            clock=lambda: self._t,
+            default_watchdog_s=watchdog_s,
+            laser_delay_s=laser_delay_s,
+            laser_jitter_s=laser_jitter_s,
+            seed=seed,
         )
         self._parser = codec.FrameParser(accept=(codec.TYPE_REPLY,))
         self._seq = 0
         self._raw: tuple[int, int] | None = None
         self._clocks = (0, 0)
         self.missed_replies = 0
+        self._missed_in_a_row = 0
+        self._max_missed = max_missed_replies
+        self.gate = FreshnessGate(2.0 * command_period_s)
 
     @property
     def laser_on(self) -> bool:
@@ -107,6 +133,11 @@ class EmulatedControlUnit:
     @property
     def watchdog_trips(self) -> int:
         return int(self.emulator.watchdog_trips)
+
+    @property
+    def laser_switches(self) -> deque[tuple[float, bool]]:
+        """(t_s, on): when the emulated relay actually switched (delay and jitter included)."""
+        return self.emulator.laser_switches
 
     def exchange(self, command: Any, now_s: float) -> Any:
         """Encode ``command``, feed the bytes to the emulator at ``now_s``, decode its reply
@@ -122,7 +153,9 @@ class EmulatedControlUnit:
             laser_on=bool(command.laser_on),
             enable=bool(command.enable),
         )
-        reply = self.emulator.handle_bytes(codec.encode_command(cmd.to_frame(self._seq)))
+        self.gate.submit(cmd, now_s)
+        frame = self.gate.frame(self._seq, now_s, healthy=self._missed_in_a_row < self._max_missed)
+        reply = self.emulator.handle_bytes(codec.encode_command(frame))
         frames = [
             f
             for f in self._parser.feed(reply)
@@ -130,7 +163,9 @@ class EmulatedControlUnit:
         ]
         if not frames:
             self.missed_replies += 1
+            self._missed_in_a_row += 1
             return None
+        self._missed_in_a_row = 0
         rep = frames[-1]
         raw = (rep.left_clocks, rep.right_clocks)
         if self._raw is not None:
@@ -149,11 +184,50 @@ class EmulatedControlUnit:
         _ = self.emulator.clocks  # integrates the plant to the clock
 
 
-def make_control_unit(plant: Chair, kind: str, watchdog_s: float) -> Any:
-    """``emulator`` (bytes through the codec) or ``direct`` (the plant without a link)."""
+def make_control_unit(
+    plant: Chair,
+    kind: str,
+    watchdog_s: float,
+    command_period_s: float = 0.02,
+    laser_delay_s: float = 0.02,
+    laser_jitter_s: float = 0.0,
+    seed: int = 0,
+) -> Any:
+    """``emulator`` (bytes through the codec, the relay's delay and jitter) or ``direct`` (the
+    plant without a link; the laser switches at the command); ``command_period_s``: how often
+    the controller sends (its freshness limit is two of them)."""
     if kind == "emulator":
-        return EmulatedControlUnit(plant, watchdog_s)
+        return EmulatedControlUnit(
+            plant,
+            watchdog_s,
+            command_period_s,
+            laser_delay_s=laser_delay_s,
+            laser_jitter_s=laser_jitter_s,
+            seed=seed,
+        )
     return DirectControlUnit(plant, watchdog_s)
+
+
+def lit_share(switches: Any, t0_s: float, t1_s: float, now_on: bool) -> float:
+    """The share of [t0_s, t1_s] during which the laser was lit, from its switch history
+    ``[(t_s, on), ...]`` (time order; each entry a change) and its state now (used when the
+    history is empty)."""
+    if t1_s <= t0_s:
+        return 0.0
+    state = (not switches[0][1]) if switches else now_on
+    t, lit = t0_s, 0.0
+    for ts, on in switches:
+        if ts <= t0_s:
+            state = on
+            continue
+        if ts >= t1_s:
+            break
+        if state:
+            lit += ts - t
+        state, t = on, ts
+    if state:
+        lit += t1_s - t
+    return lit / (t1_s - t0_s)
 
 
 # -- the tilt sensor ------------------------------------------------------------------------------

@@ -54,15 +54,28 @@ class RealTimeChair:
         self._boxes, self._drops = world_rects(self.course.world)
         self.cu_path = ""
         self.tilt_path = ""
+        self._frames = 0
 
     def save_calibration(self, path: str | Path) -> None:
         self.sim.calibration.save(path)
 
-    def _frame(self) -> Any:
-        laser = bool(self.emu.laser_on)  # advances the plant to now under the emulator's lock
-        self.sim.now_s = time.monotonic() - self.t0
-        cap = self.sim.render(laser_on=laser)
-        return self.sim.now_s, cap.base1, cap.base2
+    def _frame(self, t_s: float) -> Any:
+        """The frame the free-running cameras exposed around ``t_s`` (monotonic, the frame
+        server's clock): the chair's view (the plant advanced to now, a readout later), its
+        laser dots dimmed by the share of the exposure the emulated relay was lit."""
+        from omnid.sim.adapters import lit_share
+        from omnid.sim.camera import SimFrame
+
+        on = bool(self.emu.laser_on)  # advances the plant to now under the emulator's lock
+        sim = self.sim
+        half = 0.5 * sim.camera.model.exposure_s
+        lit = lit_share(self.emu.laser_switches, t_s - half, t_s + half, on)
+        sim.now_s = t_s - self.t0
+        pose = sim.chair.pose
+        self._frames += 1
+        frame = SimFrame(self._frames, t_s, pose, lit, seed=self._frames)
+        img1, img2 = sim.camera.render(frame, sim.laser_hits(pose))
+        return t_s, img1, img2
 
     def start(self, tilt: bool = True) -> None:
         from omnid.sim.frame_server import FrameServer

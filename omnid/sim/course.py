@@ -5,7 +5,7 @@ the origin facing +x. Layout, seen from above (x up the page)::
 
     x = 6000  ───────────── wall ──────────────
     x = 3900  ═════════════ narrow ════════════   partition B x 3800–3900, narrow gap y −225…225
-                  [box 3]                         (x 2100–2400, y −1100…−700, 500 mm tall)
+                  [box 3]                         (x 2200–2500, y −1100…−700, 500 mm tall)
       ░░stairs down 170 mm░░                      (drop-off x 2000–3800, y −2200…−1700)
     x = 2000  ═════════════ wide ══════════════   partition A x 1900–2000, wide gap y −550…550
               [box 2]                             (x 1300–1700, y −1100…−600, 600 mm)
@@ -69,7 +69,7 @@ def builtin_course() -> Course:
     boxes = (
         Box(800.0, 1200.0, 550.0, 950.0, 400.0),
         Box(1300.0, 1700.0, -1100.0, -600.0, 600.0),
-        Box(2100.0, 2400.0, -1100.0, -700.0, 500.0),
+        Box(2200.0, 2500.0, -1100.0, -700.0, 500.0),
     )
     stairs = DropOff(pa1, pb0, y0, -1700.0, 170.0)
     world = World(boxes=(*boxes, *partitions, *walls(x0, x1, y0, y1)), dropoffs=(stairs,))
@@ -82,7 +82,7 @@ def builtin_course() -> Course:
         labels=(
             ("box 1", 1000.0, 750.0),
             ("box 2", 1500.0, -850.0),
-            ("box 3", 2250.0, -900.0),
+            ("box 3", 2350.0, -900.0),
             ("wide passage", 1700.0, 0.0),
             ("narrow passage", 4100.0, 0.0),
             ("stairs down", 2900.0, -1950.0),

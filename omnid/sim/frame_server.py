@@ -10,6 +10,14 @@ The server runs in its own thread, so it serves a simulator whose loop is synchr
 come from a ``provider`` callable returning ``(t_s, img1, img2)``; it is called once per request,
 so a simulator can render the frame for the pose and laser state at that moment.
 
+The server is a free-running camera (``frame_period_s``, default 30 frames/s): frame k is
+exposed around t_k = t_start + k·period on the monotonic clock, a request is answered with the
+next frame not yet sent, ``readout_s`` after the middle of its exposure (the request waits for
+it), stamped t_k — so a client sees the frame rate, the capture time and the delay of a real
+camera. A provider that takes an argument is called with t_k (to render the laser as it was
+lit during that exposure). ``drop_rate`` loses that share of frames (the next one is sent).
+``frame_period_s=None``: every request is answered at once with the provider's own stamp.
+
 Codec and transport are apart: :func:`encode_frame` / :func:`decode_header` are plain bytes
 functions; :class:`FrameServer` and :func:`fetch_frame` move them.
 """
@@ -17,8 +25,11 @@ functions; :class:`FrameServer` and :func:`fetch_frame` move them.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import logging
+import math
 import os
+import random
 import socket
 import struct
 import threading
@@ -40,7 +51,7 @@ HEADER = struct.Struct("<4sdII")
 MAX_SIDE_PX = 4096
 
 Frame = tuple[float, NDArray[np.uint8], NDArray[np.uint8]]
-FrameProvider = Callable[[], Frame]
+FrameProvider = Callable[..., Frame]
 
 
 def encode_frame(t_s: float, img1: NDArray[np.uint8], img2: NDArray[np.uint8]) -> bytes:
@@ -117,10 +128,26 @@ class FrameServer:
         path: str | os.PathLike[str],
         provider: FrameProvider,
         client_timeout_s: float = 10.0,
+        frame_period_s: float | None = 1.0 / 30.0,
+        readout_s: float = 0.006,
+        drop_rate: float = 0.0,
+        seed: int = 0,
     ) -> None:
         self.path = Path(path)
         self.provider = provider
         self.client_timeout_s = client_timeout_s
+        self.frame_period_s = frame_period_s
+        self.readout_s = readout_s
+        self.drop_rate = drop_rate
+        self._rng = random.Random(seed)
+        self._t_start = time.monotonic()
+        self._next_frame = 0
+        self._clock_lock = threading.Lock()
+        try:
+            self._provider_takes_time = len(inspect.signature(provider).parameters) >= 1
+        except (TypeError, ValueError):
+            self._provider_takes_time = False
+        self.frames_dropped = 0
         self.requests_served = 0
         self.errors = 0
         self._listener: socket.socket | None = None
@@ -195,6 +222,28 @@ class FrameServer:
             t.start()
             self._threads = [x for x in self._threads if x.is_alive()] + [t]
 
+    def _next(self) -> Frame:
+        """The next frame: wait for the frame clock (if any), render, stamp."""
+        period = self.frame_period_s
+        if period is None:
+            return self.provider()
+        with self._clock_lock:  # one camera: connections share its frames
+            now = time.monotonic()
+            k = max(self._next_frame, math.ceil((now - self._t_start - self.readout_s) / period))
+            while self.drop_rate > 0 and self._rng.random() < self.drop_rate:
+                self.frames_dropped += 1
+                k += 1
+            self._next_frame = k + 1
+            t_k = self._t_start + k * period
+            wait = t_k + self.readout_s - now
+            if wait > 0:
+                time.sleep(wait)
+            if self._provider_takes_time:
+                _, img1, img2 = self.provider(t_k)
+            else:
+                _, img1, img2 = self.provider()
+        return t_k, img1, img2
+
     def _serve(self, conn: socket.socket) -> None:
         try:
             while not self._stopping.is_set():
@@ -209,7 +258,7 @@ class FrameServer:
                     log.warning("frame server: unknown request byte %r; closing connection", req)
                     return
                 try:
-                    payload = encode_frame(*self.provider())
+                    payload = encode_frame(*self._next())
                 except Exception:
                     self.errors += 1
                     log.exception("frame server: the frame provider failed; closing connection")

@@ -45,6 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from omnid.config import require
 from omnid.core.geometry import MirrorCamera, StereoRig
+from omnid.core.spotfit import erf
 from omnid.core.types import StereoCapture
 from omnid.errors import InputError
 from omnid.sim.world import LaserHits
@@ -74,9 +75,9 @@ class SpotModel:
     surface differ between dots). ``profile_power`` 1 is a Gaussian, above 1 a flatter, wider top
     (a multimode or defocused beam). The light of a dot is conserved when the mirror stretches it.
 
-    Brightness: ``peak_gray`` is the peak of a reference dot — beam brightness 1, unstretched,
-    on a horizontal surface at the installation's floor depth — times a per-dot albedo factor
-    (1 ± ``peak_jitter``). With ``shading`` each dot's light is also scaled by
+    Brightness: ``peak_gray`` is the peak of a reference dot — a beam of the laser's median
+    power (the exposure is set for the pattern), unstretched, on a horizontal surface at the
+    installation's floor depth — times a per-dot albedo factor (1 ± ``peak_jitter``). With ``shading`` each dot's light is also scaled by
     :func:`surface_shading` (closer surfaces are brighter, walls seen face-on brighter than the
     floor seen obliquely); the beam's own power (the grating's envelope) always scales it.
 
@@ -197,7 +198,8 @@ class SpotSpread:
     """The ranges :func:`random_spots` draws from, per family (uniform; px, gray levels).
 
     Common to all: the reference peak (an installer sets the exposure so that the pattern
-    shows well: ``peak_gray``), the spread between dots, and ``shading`` on. Families:
+    shows well: ``peak_gray`` for a dot of median beam power), the spread between dots, and
+    ``shading`` on. Families:
 
     - ``gaussian``: round Gaussians of ``sigma_px`` 1–3 px (the issue's range);
     - ``halo``: smaller Gaussians with a speckled sparkle halo and a few ghosts;
@@ -210,16 +212,20 @@ class SpotSpread:
     sigma_px: tuple[float, float] = (1.0, 3.0)
     small_sigma_px: tuple[float, float] = (1.0, 2.0)  # the families that add another effect
     sigma_jitter: tuple[float, float] = (0.0, 0.2)
-    peak_gray: tuple[float, float] = (80.0, 220.0)
+    peak_gray: tuple[float, float] = (100.0, 230.0)
     peak_jitter: tuple[float, float] = (0.05, 0.3)
-    saturated_peak_gray: tuple[float, float] = (300.0, 1000.0)
+    # 1.2–2.2 times what the sensor can take above the scene (≈ 185 gray) for the median dot;
+    # the brightest dots (envelope, shading, albedo) clip several times over.
+    saturated_peak_gray: tuple[float, float] = (220.0, 400.0)
     # A flat top is the beam's footprint blurred by the optics: wide, and smooth at the pixel
     # scale (a sharper profile would alias: its pixels' centroid would leave its centre).
     saturated_sigma_px: tuple[float, float] = (1.5, 2.5)
     profile_power: tuple[float, float] = (1.0, 2.0)
-    halo_fraction: tuple[float, float] = (0.03, 0.15)
-    halo_sigma_px: tuple[float, float] = (2.5, 6.0)
-    halo_speckle: tuple[float, float] = (0.2, 0.6)
+    # A halo carries 0.05–4 times the dot's own light (a matt floor to a thick carpet).
+    halo_fraction: tuple[float, float] = (0.02, 0.10)
+    halo_sigma_px: tuple[float, float] = (2.5, 5.0)
+    # Its grains are the same coherent speckle as the dot's, averaged by the pixels alike.
+    halo_speckle: tuple[float, float] = (0.05, 0.2)
     ghost_fraction: tuple[float, float] = (0.0, 0.05)
     rim_radial: tuple[float, float] = (0.4, 1.0)
     rim_tangential: tuple[float, float] = (0.0, 0.4)
@@ -276,23 +282,12 @@ def random_spots(
     return SpotModel(**params)
 
 
-def _erf(x: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Error function, |error| ≤ 1.5e-7 (Abramowitz & Stegun 7.1.26); numpy has none."""
-    s = np.sign(x)
-    a = np.abs(x)
-    t = 1.0 / (1.0 + 0.3275911 * a)
-    poly = t * (
-        0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429)))
-    )
-    return s * (1.0 - poly * np.exp(-a * a))
-
-
 def _pixel_fractions(
     centre: NDArray[np.float64], sigma: NDArray[np.float64], start: NDArray[np.int64], width: int
 ) -> NDArray[np.float64]:
     """Share (N, width) of a 1-D Gaussian's mass falling in pixels start … start+width−1."""
     edges = start[:, None] - 0.5 + np.arange(width + 1)[None, :]
-    cdf = 0.5 * _erf((edges - centre[:, None]) / (math.sqrt(2.0) * sigma[:, None]))
+    cdf = 0.5 * erf((edges - centre[:, None]) / (math.sqrt(2.0) * sigma[:, None]))
     return np.diff(cdf, axis=1)
 
 
@@ -655,19 +650,23 @@ def render_camera_pair(
     options: RenderOptions,
     rng: np.random.Generator,
     flux: ArrayLike | None = None,
+    scene_seed: int | None = None,
 ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
     """Mask and base images of one camera for dots at image positions ``rc`` (N, 2) px.
 
     ``flux`` (N,) scales each dot's light (the beam's power and :func:`surface_shading`; default
-    1). Gray (H, W) uint8, or BGR (H, W, 3) uint8 when ``options.color``. Dots outside the
-    mirror disk are not drawn; the part of a dot's light outside the disk is lost; the sensor
-    rounds and clips at 0 and 255.
+    1). ``scene_seed`` fixes the scene's texture (a camera fixed to the chair sees the same
+    scene frame after frame; default: drawn from ``rng`` like everything else). Gray (H, W)
+    uint8, or BGR (H, W, 3) uint8 when ``options.color``. Dots outside the mirror disk are not
+    drawn; the part of a dot's light outside the disk is lost; the sensor rounds and clips at
+    0 and 255.
     """
     shape = cam.image_shape
     pos, f, disk = _dots_in_disk(cam, rc, flux)
     spots = options.spots
     sig, amp = _spot_draws(spots, f, rng)
-    texture = _smooth_texture(shape, rng)
+    scene_rng = rng if scene_seed is None else np.random.default_rng(scene_seed)
+    texture = _smooth_texture(shape, scene_rng)
     scene = np.where(
         disk, options.background_level + options.background_texture * texture, OUTSIDE_DISK_LEVEL
     ).astype(np.float32)
@@ -751,9 +750,12 @@ def surface_shading(
 
 
 def hits_flux(hits: LaserHits, rig: StereoRig, spots: SpotModel) -> NDArray[np.float64]:
-    """Relative light (N, 2) of each hit in camera 1 and 2: the beam's power, times
-    :func:`surface_shading` when ``spots.shading``."""
+    """Relative light (N, 2) of each hit in camera 1 and 2: the beam's power over the laser's
+    median beam power (the exposure is set for the pattern: a dot of median power on the floor
+    has ``spots.peak_gray``), times :func:`surface_shading` when ``spots.shading``."""
     b = np.asarray(hits.brightness, dtype=np.float64)
+    if len(b):
+        b = b / max(float(np.median(b)), 1e-12)
     if not spots.shading:
         return np.column_stack([b, b])
     return np.column_stack(

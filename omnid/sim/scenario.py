@@ -129,30 +129,26 @@ def run_and_report(args: argparse.Namespace, controller: Any, title: str) -> int
 
 
 def write_floor_capture(directory: str, seed: int = 0) -> None:
-    """An empty floor rendered by the simulated rig (as installed: misaligned), laser on, as
-    ``mask1/base1/mask2/base2.png`` in ``directory`` — the installer's capture for
-    ``omnid calibrate --floor-depth-mm <mount height>``."""
+    """The installer's captures rendered by the simulated rig (as installed: misaligned, with
+    the simulator's laser), laser on: the empty floor as ``mask1/base1/mask2/base2.png`` in
+    ``directory`` and the extras as ``extra_box/`` and ``extra_wall/`` in it — for
+    ``omnid calibrate --floor-depth-mm <mount height> --extra DIR/extra_box ...``."""
     from pathlib import Path
 
-    import cv2
-
-    from omnid.sim.laser import ideal_lattice
-    from omnid.sim.render import render_hits
+    from omnid.sim.installation import write_installation
     from omnid.sim.rigs import misaligned_rig
-    from omnid.sim.scenes import floor_hits
     from omnid.sim.world import RigMount
 
     h = RigMount().height_mm
     rig = misaligned_rig(h)
-    cap = render_hits(rig, floor_hits(rig, ideal_lattice()), seed + 7919)
     out = Path(directory)
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        for name in ("mask1", "base1", "mask2", "base2"):
-            if not cv2.imwrite(str(out / f"{name}.png"), getattr(cap, name)):
-                raise OSError("cv2.imwrite failed")
+        extras = write_installation(rig, out, seed=seed)
+        for name in ("mask1", "base1", "mask2", "base2"):  # the floor under the plain names
+            (out / f"floor_{name}.png").replace(out / f"{name}.png")
     except OSError as exc:
         raise OmnidError(f"--floor-capture {directory}: cannot write ({exc})") from exc
+    print(f"extra captures: {' '.join(str(e) for e in extras)}", flush=True)
     print(f"floor capture: {out} (floor depth {h:.0f} mm)", flush=True)
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from omnid.config import require
+from omnid.sim.camera import CameraModel
 
 PerceptionMode = Literal["truth", "pipeline", "off"]
 
@@ -28,6 +29,9 @@ class SimSettings:
     tilt_period_s: float = 0.01
     perception_period_s: float | None = None  # None: the controller's perception.period_s (0.2)
     perception_latency_s: float = 0.1  # at least this long from capture to result
+    # the daemon's (one) perception worker is busy at least this long per job: a slower
+    # computer than this one; newer jobs supersede a waiting one (0: as measured)
+    worker_period_s: float = 0.0
     perception: PerceptionMode = "truth"
     control_unit: Literal["emulator", "direct"] = "emulator"
     truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
@@ -41,9 +45,16 @@ class SimSettings:
     rig: Literal["misaligned", "nominal"] = "misaligned"  # the cameras as installed
     tilt_link: Literal["emulator", "direct"] = "emulator"  # head script through the GS311 codec
     tilt_noise_deg: float = 0.0  # Gaussian noise of the emulated sensor (head jitter)
-    frame_interval_s: float = 1.0 / 30.0  # camera frame period: a flushed read waits this long
+    # the cameras' timing and scene; None: the controller's camera.fps, exposures 80 % of its
+    # camera.exposure_s (the longest the capture cycle plans for)
+    camera: CameraModel | None = None
+    # the control unit's laser switch: command → light, s, plus a uniform 0 … jitter per
+    # switch (the emulator's 20 ms relay; the stream capture at 30 frames/s wants a laser that
+    # switches between two exposures, e.g. 8 + 4 ms with perception.laser_switch_latency_s 18 ms)
+    laser_delay_s: float = 0.02
+    laser_jitter_s: float = 0.0
     laser_timeout_s: float | None = None  # None: the controller's perception.laser_timeout_s
-    frame_timeout_s: float = 1.0  # the camera source gives up on a frame after this long
+    frame_timeout_s: float = 1.0  # without a controller config: the cycle's frame timeout
     record_seen: bool = True  # keep every non-floor point perception reported (off for soaks)
     story_rest_s: float = 1.0  # a reactive rider's run ends this long after its story ended
 
@@ -60,11 +71,13 @@ class SimSettings:
             v = getattr(self, name)
             require(v is None or v > 0, name, "must be positive")
         require(self.perception_latency_s >= 0, "perception_latency_s", "must be ≥ 0")
+        require(self.worker_period_s >= 0, "worker_period_s", "must be ≥ 0")
         require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
         require(self.tilt_noise_deg >= 0, "tilt_noise_deg", "must be ≥ 0")
         require(self.story_rest_s >= 0, "story_rest_s", "must be ≥ 0")
-        for name in ("frame_interval_s", "frame_timeout_s"):
-            require(getattr(self, name) > 0, name, "must be positive")
+        require(self.frame_timeout_s > 0, "frame_timeout_s", "must be positive")
+        require(self.laser_delay_s >= 0, "laser_delay_s", "must be ≥ 0")
+        require(self.laser_jitter_s >= 0, "laser_jitter_s", "must be ≥ 0")
 
     def for_controller(self, controller: Any) -> SimSettings:
         """These settings with unset values taken from the controller's configuration (the
@@ -80,8 +93,19 @@ class SimSettings:
         laser = self.laser_timeout_s
         if laser is None:
             laser = float(cfg.perception.laser_timeout_s) if cfg is not None else 0.5
+        camera = self.camera
+        if camera is None:
+            camera = (
+                CameraModel(fps=float(cfg.camera.fps), exposure_s=0.8 * cfg.camera.exposure_s)
+                if cfg is not None
+                else CameraModel()
+            )
         return dataclasses.replace(
-            self, control_period_s=control, perception_period_s=perception, laser_timeout_s=laser
+            self,
+            control_period_s=control,
+            perception_period_s=perception,
+            laser_timeout_s=laser,
+            camera=camera,
         )
 
     def ticks(self, period_s: float | None) -> int:

@@ -38,9 +38,11 @@ one frame every period with the laser as it is (policy ``snapshot``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -58,20 +60,22 @@ from omnid.sim.adapters import (
     DirectTiltSensor,
     EmulatedControlUnit,
     EmulatedTiltSensor,
+    lit_share,
     make_control_unit,
     make_tilt_sensor,
 )
+from omnid.sim.camera import SimCamera, SimFrame
 from omnid.sim.chair import Chair, ChairSettings, Contact
 from omnid.sim.course import Course
 from omnid.sim.faults import FAULT_KINDS, Fault, FaultInjector, FaultKind, InjectedFault
-from omnid.sim.laser import LaserProjector, ideal_lattice
+from omnid.sim.laser import LaserProjector
 from omnid.sim.open_loop import OpenLoopCommand, OpenLoopDriver
 from omnid.sim.results import SimResult, chair_clearance_mm, world_rects
 from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.settings import PerceptionMode, SimSettings
 from omnid.sim.story import Observation, ReactiveRider
-from omnid.sim.world import RigMount, cast_laser, rig_to_world
+from omnid.sim.world import RigMount, World, cast_laser, rig_to_world
 
 __all__ = [
     "FAULT_KINDS",
@@ -123,6 +127,7 @@ class Simulator:
         progress: Callable[[float, Simulator], None] | None = None,
         faults: Sequence[Fault] = (),
         joystick: JoystickScript | None = None,
+        world_changes: Sequence[tuple[float, World]] = (),
     ) -> None:
         self.course = course
         self.controller = controller
@@ -148,8 +153,18 @@ class Simulator:
                 misaligned_rig(h) if s.rig == "misaligned" else StereoRig.nominal(floor_depth_mm=h)
             )
         self.rig = rig
-        self.laser = laser or ideal_lattice()
-        self.control_unit = make_control_unit(self.chair, s.control_unit, s.watchdog_s)
+        # the world's laser: a physical, non-ideal projector (perception never sees it;
+        # calibration learns it from the installer's captures)
+        self.laser = laser or LaserProjector()
+        self.control_unit = make_control_unit(
+            self.chair,
+            s.control_unit,
+            s.watchdog_s,
+            float(s.control_period_s or 0.02),
+            s.laser_delay_s,
+            s.laser_jitter_s,
+            s.seed,
+        )
         self.tilt: EmulatedTiltSensor | DirectTiltSensor | None = None
         if rider is not None:
             self.tilt = make_tilt_sensor(rider, s.tilt_link, s.tilt_noise_deg, s.seed)
@@ -163,40 +178,63 @@ class Simulator:
         if s.perception == "pipeline":
             self.install()
         self._box_rects, self._drop_rects = world_rects(course.world)
+        self.world_changes = sorted(world_changes, key=lambda c: c[0])
+        self._worlds: dict[int, World] = {0: course.world}  # by version (SimFrame.world)
+        x0, x1 = course.x_range_mm
+        y0, y1 = course.y_range_mm
+        assert s.camera is not None
+        self.camera = SimCamera(
+            s.camera, self.rig, self.mount, course.world, (x0 - 3000, x1 + 3000, y0 - 3000, y1 + 3000),
+            seed=s.seed,
+        )  # fmt: skip
         # the capture cycle of ``omnid run``; a controller that does not switch the laser gets
         # the snapshot policy (one frame every period, laser as it is)
         self.drives_laser = hasattr(controller, "capturing") and hasattr(controller, "laser_on")
         self.capture_cycle = CaptureCycle(self._capture_settings())
-        self._read: tuple[float, float] | None = None  # camera read in progress: (start, due)
+        self._read_since: float | None = None  # a triggered read (stationary) began then
+        self._triggered = 0
+        self._poses: deque[tuple[float, float, float, float]] = deque(maxlen=64)
+        # the jobs the (one) worker takes next, oldest first: a mask completes up to
+        # mask_every_frames − 1 of them at once; an older one beyond that is dropped
+        self._waiting: deque[CaptureJob] = deque()
+        self._waiting_max = max(1, self.capture_cycle.settings.mask_every_frames - 1)
+        self._worker_free_s = 0.0
+        self.superseded = 0  # jobs replaced by a newer one before the worker took them
+        self.perceive_s = 0.0  # wall time of the last job's vision step (what the worker runs)
+        self._rendered: dict[int, tuple[NDArray[np.uint8], NDArray[np.uint8]]] = {}
         # Laser hits per pose: a chair standing still (refused, resting) sees the same dots, so
         # truth perception casts them once per pose; fresh noise is drawn on every use.
-        self._hits_cache: dict[tuple[float, float, float], Any] = {}
+        self._hits_cache: dict[tuple[float, ...], Any] = {}
 
     # -- installation -------------------------------------------------------------------------
 
     def install(self) -> Any:
-        """Calibrate the rig as an installer would: one capture of an empty floor ``H`` below
-        the mirrors (laser on), ``calibrate_from_capture``; the result is what perception uses."""
-        from omnid.core.calibration import calibrate_from_capture
-        from omnid.sim.render import render_hits
-        from omnid.sim.scenes import floor_hits
+        """Calibrate the rig as an installer would: a capture of the empty floor ``H`` below the
+        mirrors and extra captures of a box and a wall ahead (laser on),
+        :func:`omnid.sim.installation.calibrate_installed`; the result is what perception uses."""
+        from omnid.sim.installation import calibrate_installed
 
         w0 = time.perf_counter()
-        floor = floor_hits(self.rig, self.laser, self.mount)
-        cap = render_hits(self.rig, floor, self.settings.seed + 7919)
-        self.calibration = calibrate_from_capture(cap, self.mount.height_mm, self.rig.baseline_mm)
+        self.calibration = calibrate_installed(
+            self.rig, self.laser, self.mount, seed=self.settings.seed
+        )
         self.install_s = time.perf_counter() - w0
         return self.calibration
 
     # -- camera views -------------------------------------------------------------------------
 
-    def laser_hits(self, pose: tuple[float, float, float] | None = None) -> Any:
-        """``cast_laser`` at ``pose`` (default: the chair's current pose), remembered for the
-        last few distinct poses (the world does not change during a run)."""
-        key = pose or self.chair.pose
+    def laser_hits(
+        self, pose: tuple[float, float, float] | None = None, world: int | None = None
+    ) -> Any:
+        """``cast_laser`` at ``pose`` (default: the chair's current pose) in world version
+        ``world`` (default: the current one; a frame keeps the version it was exposed in),
+        remembered for the last few distinct poses."""
+        p = pose or self.chair.pose
+        version = self.camera.world_version if world is None else world
+        key = (version, *p)
         hits = self._hits_cache.get(key)
         if hits is None:
-            hits = cast_laser(self.course.world, key, self.mount, self.laser, self.rig)
+            hits = cast_laser(self._worlds[version], p, self.mount, self.laser, self.rig)
             if len(self._hits_cache) >= 64:
                 self._hits_cache.pop(next(iter(self._hits_cache)))
             self._hits_cache[key] = hits
@@ -223,8 +261,13 @@ class Simulator:
         ):
             if not on:
                 vis = np.zeros(len(hits), dtype=bool)
+            # The scene a camera fixed to the chair sees stays the same between its frames
+            # (a laser-off and a laser-on frame differ by the laser and the sensor's noise).
+            scene_seed = int(self.settings.seed) * 2 + k + 1
             images.extend(
-                render_camera_pair(cam, cam.project(hits.xyz[vis]), opts, rng, flux[vis, k])
+                render_camera_pair(
+                    cam, cam.project(hits.xyz[vis]), opts, rng, flux[vis, k], scene_seed
+                )
             )
         return StereoCapture(images[0], images[1], images[2], images[3], self.now_s)
 
@@ -235,8 +278,10 @@ class Simulator:
 
     # -- perception ---------------------------------------------------------------------------
 
-    def _truth_cloud(self, pose: tuple[float, float, float] | None = None) -> PointCloud:
-        hits = self.laser_hits(pose)
+    def _truth_cloud(
+        self, pose: tuple[float, float, float] | None = None, world: int | None = None
+    ) -> PointCloud:
+        hits = self.laser_hits(pose, world)
         vis = hits.visible
         xyz = hits.xyz[vis]
         s = self.settings.truth_noise_mm
@@ -299,15 +344,66 @@ class Simulator:
         return cloud
 
     def perceive_job(self, job: CaptureJob) -> PointCloud:
-        """The cloud of one capture job: its frames rendered as they were taken (pose, laser as
-        switched), through the vision step. A job without a mask (``snapshot``) is subtracted
-        against a laser-off rendering at the base pose."""
-        base_pose, base_laser = job.base.source
-        capture = None
-        if self.settings.perception == "pipeline" and base_laser:
-            mask_pose, mask_laser = job.masks[0].source if job.masks else (base_pose, False)
-            capture = self.capture(mask_pose, mask_laser, base_pose, base_laser)
-        return self._perceive_capture(capture, base_pose, base_laser)
+        """The cloud of one capture job, as the daemon's worker would compute it, then the
+        vision step. ``stream``: the frames as the simulated cameras took them
+        (:class:`~omnid.sim.camera.SimCamera`: pose, laser light, the scene fixed to the world,
+        noise), each mask moved to the base's pose by the job's motion
+        (``perception.motion_compensation``). ``stationary``/``snapshot``: one render.py
+        capture at the base's pose (the scene fixed to the camera: no motion residue; a
+        ``snapshot`` job's mask is the same view without laser)."""
+        base: SimFrame = job.base.source
+        self.perceive_s = 0.0
+        if self.injector.active("perception_exception"):
+            raise InjectedFault("injected fault: the vision pipeline raised")
+        mode = self.settings.perception
+        if mode == "off" or not base.laser:
+            return PointCloud(floor_depth_mm=self.mount.height_mm)
+        if mode == "truth":
+            return self._truth_cloud(base.pose, base.world)
+        from omnid.core.pipeline import perceive
+        from omnid.daemon.perception_worker import job_capture
+
+        if self.capture_cycle.settings.policy != "stream":
+            # one mask/base capture of render.py: the scene fixed to the camera, the same in
+            # both (no motion residue), the mask drawn at the base's pose
+            mask = job.masks[0].source if job.masks else None
+            mask_pose = mask.pose if mask is not None else base.pose
+            mask_lit = mask is not None and mask.laser
+            capture = self.capture(mask_pose, mask_lit, base.pose, True)
+        else:
+            masks = [m.source for m in job.masks]
+            motions = list(job.mask_motions)
+            cfg = getattr(self.controller, "config", None)
+            if cfg is not None and not cfg.perception.motion_compensation:
+                motions = [None] * len(masks)
+            offset = float(cfg.perception.rig_x_offset_mm) if cfg is not None else 0.0
+            capture = job_capture(
+                self._frame_images(base),
+                [self._frame_images(m) for m in masks],
+                motions,
+                self.calibration.rig,
+                offset,
+                job.t_s,
+            )
+        on_capture = getattr(self.controller, "on_capture", None)  # a recording core
+        if on_capture is not None:
+            on_capture(capture)
+        method, settings = self._pipeline()
+        w0 = time.perf_counter()
+        cloud: PointCloud = perceive(capture, self.calibration, method, settings)  # type: ignore[arg-type]
+        self.perceive_s = time.perf_counter() - w0
+        return cloud
+
+    def _frame_images(self, frame: SimFrame) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """The rendered images of ``frame`` (a mask serves several base frames: kept)."""
+        cache = self._rendered
+        images = cache.get(frame.index)
+        if images is None:
+            images = self.camera.render(frame, self.laser_hits(frame.pose, frame.world))
+            if len(cache) >= 8:
+                cache.pop(next(iter(cache)))
+            cache[frame.index] = images
+        return images
 
     def perceive_now(self) -> PointCloud:
         """The point cloud the daemon would get from a capture at the current pose (laser as
@@ -341,20 +437,28 @@ class Simulator:
         return text
 
     def _capture_settings(self) -> CaptureSettings:
-        """The capture cycle's settings: the controller's ``perception`` configuration, with the
-        period and laser timeout as the simulation settings resolved them."""
+        """The capture cycle's settings: the controller's configuration (``perception``,
+        ``camera``, ``motion``), with the period and laser timeout as the simulation settings
+        resolved them; without a configuration the snapshot policy at the simulated cameras'
+        rate."""
         s = self.settings
-        policy = "stationary" if self.drives_laser else "snapshot"
         assert s.perception_period_s is not None and s.laser_timeout_s is not None
         changes: dict[str, Any] = {
-            "policy": policy,
             "period_s": s.perception_period_s,
             "laser_timeout_s": s.laser_timeout_s,
         }
         cfg = getattr(self.controller, "config", None)
+        if not self.drives_laser:
+            changes["policy"] = "snapshot"
         if cfg is not None:
-            return CaptureSettings.from_config(cfg.perception, **changes)
-        return CaptureSettings(frame_timeout_s=s.frame_timeout_s, **changes)
+            return CaptureSettings.from_config(cfg, **changes)
+        assert s.camera is not None
+        return CaptureSettings(
+            frame_timeout_s=s.frame_timeout_s,
+            frame_period_s=s.camera.period_s,
+            exposure_s=min(1.25 * s.camera.exposure_s, 0.9 * s.camera.period_s),
+            **changes,
+        )
 
     def run(self, duration_s: float) -> SimResult:
         """Simulate ``duration_s`` virtual seconds; returns the trajectory, contacts, refusals,
@@ -375,8 +479,13 @@ class Simulator:
         # memory by 3.4 kB per simulated second (6 MB in a 30-minute soak) as they filled.
         traj = np.full((n_ticks // k_rec + 2, 4), np.nan)
         speeds = np.full((n_ticks + 1, 3), np.nan)
-        cmds = np.full((n_ticks // k_ctrl + 1, 5), np.nan)
-        steps = np.full((n_ticks // k_ctrl + 1, 7), np.nan)
+        # control steps: the 50 Hz grid plus the extra steps a laser switch runs at once (as
+        # the daemon's control loop does): two per mask (or cycle); the records grow if needed
+        cs = self.capture_cycle.settings
+        gap = cs.mask_every_frames * cs.frame_period_s if cs.policy == "stream" else cs.period_s
+        n_steps = n_ticks // k_ctrl + 1 + 2 * math.ceil(duration_s / gap) + 4
+        cmds = np.full((n_steps, 5), np.nan)
+        steps = np.full((n_steps, 7), np.nan)
         reason_bits: dict[str, int] = {}
         n_traj = n_speed = n_cmd = 0
         contacts: list[tuple[float, Contact]] = []
@@ -392,26 +501,57 @@ class Simulator:
         last_progress = -math.inf
 
         def finish(job: CaptureJob) -> None:
-            w0 = time.perf_counter()
+            """The worker takes ``job`` now: the vision step's wall time (not the rendering,
+            which stands for the cameras) is charged as virtual time."""
             try:
                 cloud = self.perceive_job(job)
             except Exception as exc:  # as the daemon's perception loop: log, no result
                 errors.append((now, f"{type(exc).__name__}: {exc}"))
                 log.warning("perception cycle failed at t=%.2f s: %s", now, exc)
                 return
-            took = time.perf_counter() - w0
+            took = self.perceive_s
             t_perc.append(took)
-            pose = job.base.source[0]
-            pending.append((now + max(took, s.perception_latency_s), job.t_s, cloud, pose))
+            self._worker_free_s = now + max(took, s.worker_period_s)
+            at = max(now + took, job.t_s + s.perception_latency_s)
+            pending.append((at, job.t_s, cloud, job.base.source.pose))
+            pending.sort(key=lambda p: p[0])
 
         def failed(failure: CaptureFailure) -> None:
             errors.append((now, failure.message))
             log.warning("perception cycle failed at t=%.2f s: %s", now, failure.message)
 
+        def control(t: float) -> None:
+            """One control cycle at ``t``: step, record, exchange with the control unit."""
+            nonlocal cmds, steps, n_cmd, ctrl_n, ctrl_sum, ctrl_max, last_refusal
+            if n_cmd == len(cmds):  # more extra cycles than foreseen: grow the records
+                cmds = np.vstack([cmds, np.full_like(cmds, np.nan)])
+                steps = np.vstack([steps, np.full_like(steps, np.nan)])
+            w0 = time.perf_counter()
+            command = ctl.step(t)
+            took_ctrl = time.perf_counter() - w0
+            ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
+            ctrl_max = max(ctrl_max, took_ctrl)
+            last_refusal = self._note_decision(t, refusals, last_refusal)
+            steps[n_cmd] = (t, self._reason_mask(reason_bits), *self.chair.pose, *self._speed())
+            status = self.control_unit.exchange(command, t)
+            if status is not None:
+                ctl.on_status(status)
+                self.capture_cycle.on_status(status)
+            cmds[n_cmd] = (
+                t,
+                float(command.left_duty),
+                float(command.right_duty),
+                float(command.laser_on),
+                float(command.enable),
+            )
+            n_cmd += 1
+
         for k in range(n_ticks + 1):
             now = k * dt
             self.now_s = now
             self.injector.apply(now, self.control_unit, self.tilt)
+            while self.world_changes and self.world_changes[0][0] <= now + 1e-9:
+                self.set_world(self.world_changes.pop(0)[1])
             if self.reactive is not None and k % k_tilt == 0:
                 if (
                     self.reactive.done_s is not None
@@ -441,32 +581,18 @@ class Simulator:
                 if s.record_seen and np.any(keep):
                     w = rig_to_world(cloud.xyz[keep], pose, self.mount)
                     seen.append(np.column_stack([w[:, :2], cloud.classes[keep]]))
-            self._perception_step(now, finish, failed)
-            if k % k_ctrl == 0:
-                w0 = time.perf_counter()
-                command = ctl.step(now)
-                took_ctrl = time.perf_counter() - w0
-                ctrl_n, ctrl_sum = ctrl_n + 1, ctrl_sum + took_ctrl
-                ctrl_max = max(ctrl_max, took_ctrl)
-                last_refusal = self._note_decision(now, refusals, last_refusal)
-                steps[n_cmd] = (
-                    now,
-                    self._reason_mask(reason_bits),
-                    *self.chair.pose,
-                    *self._speed(),
-                )
-                status = self.control_unit.exchange(command, now)
-                if status is not None:
-                    ctl.on_status(status)
-                    self.capture_cycle.on_laser_report(bool(status.laser_on), status.timestamp_s)
-                cmds[n_cmd] = (
-                    now,
-                    float(command.left_duty),
-                    float(command.right_duty),
-                    float(command.laser_on),
-                    float(command.enable),
-                )
-                n_cmd += 1
+            if self._perception_step(now, finish, failed) or k % k_ctrl == 0:
+                control(now)
+            # a laser switch falls due between two ticks: asked at its time, and put on the wire
+            # at once by an extra control cycle (as the daemon does), not at the next tick
+            t_evt = now
+            for _ in range(8):
+                t_next = self.capture_cycle.next_poll_s
+                if not t_evt < t_next < now + dt - 1e-9:
+                    break
+                t_evt = t_next
+                if self._perception_poll(t_evt, failed):
+                    control(t_evt)
             speeds[n_speed] = (now, self.chair.left_speed_mm_s, self.chair.right_speed_mm_s)
             n_speed += 1
             if k % k_rec == 0:
@@ -511,6 +637,12 @@ class Simulator:
             "watchdog_trips": float(self.control_unit.watchdog_trips),
             "bytes_link": float(isinstance(self.control_unit, EmulatedControlUnit)),
             "tilt_bytes_link": float(isinstance(self.tilt, EmulatedTiltSensor)),
+            "clouds_per_s": len(t_perc) / self.now_s if self.now_s > 0 else 0.0,
+            "frames": float(self.camera.frames),
+            "frames_dropped": float(self.camera.dropped),
+            "masks": float(self.capture_cycle.masks_taken),
+            "jobs_superseded": float(self.superseded),
+            "frames_unused": float(self.capture_cycle.ignored_frames),
         }
         return SimResult(
             duration_s=self.now_s,
@@ -549,45 +681,118 @@ class Simulator:
         fwd = float(getattr(demand, "forward", 0.0)) if demand is not None else 0.0
         return 0.5 * (c.left_speed_mm_s + c.right_speed_mm_s), fwd
 
+    def set_world(self, world: World) -> None:
+        """The world changes now (a hazard steps into view): frames exposed from now on, the
+        contacts and the truth measures see the new one."""
+        self.course = dataclasses.replace(self.course, world=world)
+        self._worlds[self.camera.set_world(world)] = world
+        self._box_rects, self._drop_rects = world_rects(world)
+
+    def _pose_at(self, t_s: float) -> Pose:
+        """The chair's true pose at ``t_s`` (linear between physics ticks)."""
+        poses = self._poses
+        if not poses or t_s >= poses[-1][0]:
+            return self.chair.pose
+        prev = poses[0]
+        for cur in poses:
+            if cur[0] >= t_s:
+                if cur is prev or cur[0] <= prev[0]:
+                    return cur[1], cur[2], cur[3]
+                w = (t_s - prev[0]) / (cur[0] - prev[0])
+                dth = math.remainder(cur[3] - prev[3], math.tau)
+                return (
+                    prev[1] + w * (cur[1] - prev[1]),
+                    prev[2] + w * (cur[2] - prev[2]),
+                    prev[3] + w * dth,
+                )
+            prev = cur
+        return prev[1], prev[2], prev[3]
+
+    def _lit_share(self, t0_s: float, t1_s: float) -> float:
+        cu = self.control_unit
+        return lit_share(cu.laser_switches, t0_s, t1_s, bool(cu.laser_on))
+
+    def _poll(self, now: float, failed: Callable[[CaptureFailure], None]) -> None:
+        for out in self.capture_cycle.poll(now):
+            if isinstance(out, CaptureFailure):
+                failed(out)
+            else:
+                self._queue(out)
+
+    def _queue(self, job: CaptureJob) -> None:
+        self._waiting.append(job)
+        while len(self._waiting) > self._waiting_max:
+            self._waiting.popleft()
+            self.superseded += 1
+
+    def _perception_poll(self, t: float, failed: Callable[[CaptureFailure], None]) -> bool:
+        """The capture cycle polled between ticks (its laser requests fall due): True when its
+        laser request changed."""
+        cycle = self.capture_cycle
+        before = cycle.laser_on
+        for out in cycle.poll(t):
+            if isinstance(out, CaptureFailure):
+                failed(out)
+            else:
+                self._queue(out)
+        if not self.drives_laser:
+            return False
+        self.controller.laser_on = cycle.laser_on
+        self.controller.capturing = cycle.capturing
+        return cycle.laser_on != before and cycle.settings.policy == "stream"
+
     def _perception_step(
         self,
         now: float,
         finish: Callable[[CaptureJob], None],
         failed: Callable[[CaptureFailure], None],
-    ) -> None:
-        """One tick of the daemon's capture cycle against the simulated camera.
+    ) -> bool:
+        """One tick of the daemon's capture cycle against the simulated cameras; True when the
+        cycle changed its laser request (the daemon then runs a control cycle at once).
 
-        The camera: a read that must follow a laser switch (the cycle's ``flush_needed``) waits
-        ``frame_interval_s`` for a fresh frame; any other read returns the frame the camera
-        holds at once. A frame shows the chair's pose and the laser as switched when the read
-        completes. With the cameras stopped no frame comes, and the source gives up after
-        ``frame_timeout_s``."""
-        s = self.settings
+        ``stream``: the cameras free-run (:class:`omnid.sim.camera.SimCamera`) and every frame
+        delivered by now goes to the cycle. ``stationary``/``snapshot``: a triggered camera —
+        a read that must follow a laser switch (the cycle's ``flush_needed``) is exposed when
+        asked and delivered ``1/fps`` later, any other read returns at once; the frame shows
+        the pose and the laser as switched when it is delivered. With the cameras stopped no
+        frame comes. The one worker takes the queued jobs in order when it is free."""
         cycle = self.capture_cycle
-        for _ in range(4):  # an immediate read is delivered in the same tick
-            if self._read is not None and not cycle.wants_frame():
-                self._read = None  # the cycle gave up on this frame
-            if self._read is not None:
-                started, due = self._read
-                if self.injector.active("camera_stopped"):
-                    if now - started >= s.frame_timeout_s:
-                        self._read = None
-                        cycle.frame_failed(f"camera: no frame within {s.frame_timeout_s:g} s")
-                elif now + 1e-9 >= due:
-                    self._read = None
-                    pose, laser = self.chair.pose, bool(self.control_unit.laser_on)
-                    cycle.on_frame(Frame(now, None, (pose, laser)))
-            for out in cycle.poll(now):
-                if isinstance(out, CaptureJob):
-                    finish(out)
-                else:
-                    failed(out)
-            if self.drives_laser:
-                self.controller.laser_on = cycle.laser_on
-                self.controller.capturing = cycle.capturing
-            if self._read is not None or not cycle.wants_frame():
-                return
-            wait = s.frame_interval_s if cycle.flush_needed else 0.0
-            self._read = (now, now + wait)
-            if wait > 0.0:
-                return
+        self._poses.append((now, *self.chair.pose))
+        stopped = self.injector.active("camera_stopped")
+        before = cycle.laser_on
+        if cycle.settings.policy == "stream":
+            if stopped:
+                self.camera.skip_until(now)
+            else:
+                for f in self.camera.delivered_until(now, self._pose_at, self._lit_share):
+                    cycle.on_frame(Frame(f.t_s, None, f))
+            self._poll(now, failed)
+        else:
+            for _ in range(4):  # an immediate read is delivered in the same tick
+                if not cycle.wants_frame():
+                    self._read_since = None
+                elif self._read_since is not None and not stopped:
+                    wait = self.camera.model.period_s if cycle.flush_needed else 0.0
+                    if now + 1e-9 >= self._read_since + wait:
+                        self._read_since = None
+                        on = bool(self.control_unit.laser_on)
+                        self._triggered += 1
+                        # (rendered by capture(), which draws its own seed)
+                        version = self.camera.world_version
+                        f = SimFrame(-self._triggered, now, self.chair.pose, float(on), 0, version)
+                        cycle.on_frame(Frame(now, None, f))
+                self._poll(now, failed)
+                if not cycle.wants_frame() or self._read_since is not None:
+                    break
+                self._read_since = now
+                if cycle.flush_needed:
+                    break
+        while self._waiting and now + 1e-9 >= self._worker_free_s:
+            finish(self._waiting.popleft())
+        if self.drives_laser:
+            self.controller.laser_on = cycle.laser_on
+            self.controller.capturing = cycle.capturing
+            # stream: a switch timed to the frames goes out at once (the daemon's extra cycle);
+            # stationary: with the next control cycle
+            return cycle.laser_on != before and cycle.settings.policy == "stream"
+        return False

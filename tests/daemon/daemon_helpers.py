@@ -93,6 +93,14 @@ class FreeFloor(OccupancyGrid):
         pass
 
 
+def arm(core, t_s: float = -0.02) -> None:
+    """The rider at rest once before a test drives (a continuous source must be seen at rest
+    since start before it may drive: ``omnid.daemon.arming``)."""
+    core.on_tilt(Tilt(0.0, 0.0, t_s))
+    core.on_joystick(Stick(0.0, 0.0, t_s))
+    core.step(t_s)
+
+
 def floor_cloud(obstacle_x_mm: float | None = None, floor_depth_mm: float = 1100.0) -> PointCloud:
     """Floor dots on a 50 mm lattice ahead of the rig, optionally a wall row at X = obstacle."""
     xs = np.arange(-400.0, 3000.0, 50.0)

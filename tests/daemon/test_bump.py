@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from daemon_helpers import FreeFloor, Status, Stick
+from daemon_helpers import FreeFloor, Status, Stick, arm
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -140,7 +140,9 @@ def joystick_core() -> ControlCore:
             tilt=TiltSettings(enabled=False), joystick=JoystickSettings(enabled=True)
         )
     )
-    return ControlCore(cfg, world_map=FreeFloor(cfg.freespace.grid))
+    core = ControlCore(cfg, world_map=FreeFloor(cfg.freespace.grid))
+    arm(core)
+    return core
 
 
 def ride(core: ControlCore, chair: Chair, t0: float, t1: float, fwd: float, turn: float = 0.0):

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from daemon_helpers import FreeFloor, RecordingMap, Status, Stick, Tilt, floor_cloud
+from daemon_helpers import FreeFloor, RecordingMap, Status, Stick, Tilt, arm, floor_cloud
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -26,7 +26,9 @@ def make_core(**rider) -> tuple[ControlCore, RecordingMap]:
         )
     )
     m = RecordingMap(cfg.freespace.grid)
-    return ControlCore(cfg, world_map=m), m
+    core = ControlCore(cfg, world_map=m)
+    arm(core)
+    return core, m
 
 
 class Chair:
@@ -144,6 +146,7 @@ def test_stale_perception_refuses_forward():
 def test_obstacle_stops_the_chair_before_it():
     core, _m = make_core()
     core = ControlCore(core.config)  # the real free-space map
+    arm(core)
     chair = Chair()
     # wall 1500 mm ahead of the axle, seen in two captures (one would leave it in doubt)
     core.on_perception(floor_cloud(obstacle_x_mm=1200.0), 0.0)
@@ -165,7 +168,12 @@ def test_exception_in_cycle_fails_safe(caplog):
     free_map(m)
     chair = Chair()
     run(core, chair, 0.0, 1.5)
-    core.grid.states = None  # break the map: the safety check raises inside the cycle
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("broken map")
+
+    core.safety.check = broken  # the safety check raises inside the cycle
+    core.on_tilt(Tilt(-20.0, 0.0, 1.52))
     cmd = core.step(1.52)
     assert (cmd.left_duty, cmd.right_duty, cmd.enable) == (0.0, 0.0, False)
     assert core.fault_count == 1 and "cycle_exception" in caplog.text
@@ -210,6 +218,7 @@ def test_joystick_source_drives_turn():
         )
     )
     core = ControlCore(cfg, world_map=FreeFloor(cfg.freespace.grid))  # all around: seen free
+    arm(core)
     chair = Chair()
     for t in np.arange(0.0, 1.0, DT):
         core.on_joystick(Stick(0.0, 1.0, float(t)))
@@ -252,3 +261,45 @@ def test_after_a_control_unit_fault_motion_waits_for_the_riders_release():
             core.on_status(Status(0, 0, 0, True, 0, t + 1.5))
             core.step(t + 1.5)
             assert any(turning(t + 1.5 + 0.02 * k) for k in range(1, 30))
+
+
+def test_a_capture_that_does_not_fit_the_calibration_refuses_forward(caplog):
+    """The rig knocked out of calibration (few dots on a calibrated beam): the core says so,
+    keeps the capture out of the map and refuses forward motion until a capture fits again."""
+    from dataclasses import replace
+
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 1.0, 1.5))
+    updates = len(m.clouds)
+    core.on_perception(replace(floor_cloud(), calibration_fit=0.1), 1.5)
+    cmds = run(core, chair, 1.5, 3.0)
+    assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
+    assert Reason.CALIBRATION_LOST in core.last_report.reasons
+    assert "calibration_lost" in caplog.text
+    assert len(m.clouds) == updates  # the misfit capture never reached the map
+    core.on_perception(replace(floor_cloud(), calibration_fit=0.95), 3.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 3.0, 4.5))
+
+
+def test_a_capture_with_dots_not_understood_stays_out_of_the_map(caplog):
+    """A floor-only calibration met an obstacle it cannot read (source unknown, not placed by
+    the capture): the capture is kept out of the map, so the area is not taken as free and the
+    chair stops as perception goes stale; a capture read in full is used again."""
+    from dataclasses import replace
+
+    core, m = make_core()
+    free_map(m)
+    chair = Chair()
+    run(core, chair, 0.0, 1.0)
+    assert any(c.left_duty > 0 for c in run(core, chair, 1.0, 1.5))
+    updates, fresh = len(m.clouds), core.perception_time_s
+    core.on_perception(replace(floor_cloud(), not_understood=40), 1.5)
+    assert len(m.clouds) == updates and "not understood" in caplog.text
+    assert core.perception_time_s == fresh  # not fresh perception: it goes stale
+    cmds = run(core, chair, 1.5, 5.0, perceive=False)  # no usable capture since: stopped
+    assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
+    core.on_perception(replace(floor_cloud(), not_understood=1), 5.0)  # a ghost pair: used
+    assert len(m.clouds) == updates + 1

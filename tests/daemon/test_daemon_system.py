@@ -5,11 +5,12 @@ on, and a calibration written by ``omnid calibrate`` from those frames. Percepti
 (worker process, the best pipeline) on a rendered empty floor.
 
 One scenario, in order: READY=1 → neutral head pose calibrated → head tilted forward past the
-threshold for the dwell time → the wheels turn forward → tilt sensor unplugged → duty 0 within
-the promised time → replugged → forward again → control unit stalled → the daemon logs it, and
-after the unit recovers it commands stop although the head is still forward → head released and
-tilted again → forward → SIGHUP with a broken file → still driving with the old config → SIGTERM
-→ duty 0, exit 0.
+threshold for the dwell time → the wheels turn forward → tilt sensor unplugged → duty 0 at once
+→ replugged with the head still forward → the chair stays stopped (re-arm: the driving source
+must be released) → head released and tilted again → forward → control unit stalled → the
+daemon logs it, and after the unit recovers it commands stop although the head is still forward
+→ head released and tilted again → forward → SIGHUP with a broken file → still driving with the
+old config → SIGTERM → duty 0, exit 0.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -30,18 +30,15 @@ from omnid.core.geometry import StereoRig
 from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
 from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
 from omnid.sim.frame_server import FrameServer
-from omnid.sim.laser import ideal_lattice
-from omnid.sim.render import render_capture
-
-# ideal_lattice(): today's `best` matcher and floor calibration assume the regular slope lattice
-# (issue 9: laser-match switches this to a real laser when its matcher lands).
+from omnid.sim.installation import installation_captures, write_installation
 
 FLOOR_MM = 1100.0
 NEUTRAL = (1.5, -1.0)  # the rider's head at rest (roll, pitch), deg: calibrated at start
 FORWARD = (NEUTRAL[0] - 20.0, NEUTRAL[1])  # roll < -12° past neutral: forward (thesis 4.2.2)
-# promised: tilt silent → stop within rider.tilt.timeout_s (0.2) + emergency ramp from the
-# tilt forward speed (0.6 · 240 mm/s at 1200 mm/s² = 0.12 s) + two 20 ms periods (loop, link)
-PROMISED_TILT_STOP_S = 0.2 + 0.12 + 0.04
+# tilt sensor gone → duty 0 on the wire at once (the link's port error runs a cycle); by design
+# within a few ms, ≤ 60 ms for a silent sensor (tools/fault_figures.py measures it); the bound
+# here is generous for a loaded machine
+PROMISED_TILT_STOP_S = 0.3
 
 
 def wait_for(pred, timeout_s: float, step_s: float = 0.01) -> float | None:
@@ -69,15 +66,16 @@ def hold(gs: Gs311Emulator, angles: tuple[float, float]) -> None:
 
 @pytest.fixture(scope="module")
 def floor_frames(tmp_path_factory) -> tuple[Path, object]:
-    """An empty floor seen by the nominal rig, and ``omnid calibrate`` run on it (subprocess)."""
+    """The installer's captures (empty floor, a box, a wall) seen by the nominal rig with the
+    simulator's laser, and ``omnid calibrate`` run on them (subprocess)."""
     d = tmp_path_factory.mktemp("floor")
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    cap = render_capture(rig, ideal_lattice().on_plane(FLOOR_MM), seed=3)
+    extras = write_installation(rig, d, seed=3)
+    cap = installation_captures(rig, seed=3)[0]
     names = ("mask1", "base1", "mask2", "base2")
-    for name in names:
-        cv2.imwrite(str(d / f"{name}.png"), getattr(cap, name))
     calib = d / "calib.yaml"
-    args = [a for n in names for a in (f"--{n}", str(d / f"{n}.png"))]
+    args = [a for n in names for a in (f"--{n}", str(d / f"floor_{n}.png"))]
+    args += [a for e in extras for a in ("--extra", str(e))]
     out = subprocess.run(
         [
             sys.executable,
@@ -151,6 +149,9 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
 
             # head forward past the threshold for the dwell time → wheels turn forward (this
             # needs perception: a fresh cloud of free floor ahead)
+            # the head stays neutral a moment after calibration: the daemon must see it at rest
+            # once before it may drive (omnid.daemon.arming; a cycle's window was a race)
+            time.sleep(0.2)
             hold(gs, FORWARD)
             assert wait_for(lambda: forward(cu), 8.0) is not None, err_path.read_text()[-3000:]
             time.sleep(0.3)
@@ -161,7 +162,14 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
             assert t_stop is not None and t_stop <= PROMISED_TILT_STOP_S, t_stop
             time.sleep(0.3)
             assert stopped(cu)
-            gs.replug()  # the head is still forward: after the dwell it drives again
+            gs.replug()  # the head is still forward: no restart before a release
+            t_end = time.monotonic() + 1.0
+            while time.monotonic() < t_end:
+                assert stopped(cu)
+                time.sleep(0.01)
+            hold(gs, NEUTRAL)  # the rider releases ...
+            time.sleep(0.3)
+            hold(gs, FORWARD)  # ... and asks again
             assert wait_for(lambda: forward(cu), 4.0) is not None
 
             # control unit stalled: the daemon notices; after recovery it commands stop
@@ -199,7 +207,8 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
     log = err_path.read_text()
     assert "tilt neutral pose calibrated" in log
     assert "control unit link lost" in log
-    assert "until the rider releases" in log
+    assert "motion refused until tilt is released" in log
+    assert "re-armed after tilt_lost (tilt released)" in log
     assert "reload refused" in log and "control.rate_hz" in log
     assert "wheels at zero" in log
     assert "Traceback" not in log
@@ -237,3 +246,66 @@ def test_frame_time_keeps_own_clock_stamps_and_replaces_foreign_ones() -> None:
     assert frame_time(100.05, 100.0, 100.1) == 100.05  # V4L2: stamped inside the read
     assert frame_time(3.2, 100.0, 100.1) == pytest.approx(100.05)  # simulator's own clock
     assert np.isfinite(frame_time(float("nan"), 1.0, 2.0))
+
+
+def test_daemon_streams_clouds_at_the_frame_rate(tmp_path: Path, floor_frames) -> None:
+    """``omnid run`` with ``perception.capture: stream`` against a frame server free-running at
+    30 frames/s whose frames show the laser by the share of their exposure it was lit (an 8–12
+    ms laser in the emulated unit): the daemon switches the laser in step with the frames and
+    enters more than a cloud per two frames into its map, with no capture failure after the
+    start; the control loop keeps its rate."""
+    import json
+
+    from omnid.sim.adapters import lit_share
+
+    calib, cap = floor_frames
+    cu = ControlUnitEmulator(MotorPlant(), laser_delay_s=0.008, laser_jitter_s=0.004, seed=2)
+    gs = Gs311Emulator([(0.0, 0.0, 0.0)], noise_deg=0.2)
+    frames = str(tmp_path / "frames.sock")
+    planes = [a.astype(np.float32) for a in (cap.mask1, cap.base1, cap.mask2, cap.base2)]
+
+    def provider(t_s: float):
+        lit = np.float32(lit_share(cu.laser_switches, t_s - 0.003, t_s + 0.003, cu.laser_on))
+        m1, b1, m2, b2 = planes
+        return (
+            t_s,
+            np.rint(m1 + lit * (b1 - m1)).astype(np.uint8),
+            np.rint(m2 + lit * (b2 - m2)).astype(np.uint8),
+        )
+
+    stats = tmp_path / "stats.json"
+    cfg = tmp_path / "omnid.yaml"
+    cfg.write_text(
+        f"control_unit:\n  port: {cu.open_pty()}\n"
+        f"tilt_sensor:\n  port: {gs.open_pty()}\n"
+        f"camera:\n  url: sim+unix://{frames}\n"
+        f"teleop:\n  socket_path: {tmp_path / 'teleop.sock'}\n"
+        f"perception:\n  calibration_path: {calib}\n  capture: stream\n"
+        "safety:\n  perception_timeout_s: 0.3\n"
+        "rider:\n  tilt:\n    neutral_calibration_s: 0.0\n"
+    )
+    with FrameServer(frames, provider) as server, open(tmp_path / "stderr.log", "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "omnid.cli", "run", "--config", str(cfg), "--stats-out",
+             str(stats)],
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+        )  # fmt: skip
+        try:
+            time.sleep(7.0)
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=30) == 0
+        served = server.requests_served
+    gs.close()
+    cu.close()
+    st = json.loads(stats.read_text())
+    span = st["perception_last_s"] - st["perception_first_s"]
+    assert served > 100 and st["frames_read"] > 100
+    assert st["perception_cycles"] / span >= 0.5 * 30.0 * 0.8  # 0.8: a loaded test machine
+    assert st["masks_taken"] > 20
+    # a switch the unit reports later than laser_switch_latency_s (18 ms: 8–12 ms of relay
+    # plus the command path, which a loaded machine stretches) costs a few frames, not safety
+    assert st["perception_errors"] <= 0.2 * st["masks_taken"]
+    late = np.asarray(st["lateness_s"])
+    assert len(late) > 200 and np.percentile(late, 50) < 0.005

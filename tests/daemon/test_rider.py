@@ -42,7 +42,9 @@ def feed(interp: TiltInterpreter, roll: float, pitch: float, t0: float, t1: floa
 
 
 def settings(**kw) -> TiltSettings:
-    base = dict(threshold_deg=12.0, release_deg=8.0, dwell_s=0.3, neutral_calibration_s=0.0)
+    base = dict(
+        threshold_deg=12.0, release_deg=8.0, dwell_s=0.3, neutral_calibration_s=0.0, timeout_s=0.2
+    )
     base.update(kw)
     return TiltSettings(**base)
 

@@ -36,13 +36,28 @@ def test_command_layout_matches_protocol_document():
         right_duty_pm=250,
         flags=codec.FLAG_RIGHT_REVERSE | codec.FLAG_LASER_ON | codec.FLAG_ENABLE,
         watchdog_ms=250,
+        cycle=0xBEEF,
+        age_ms=7,
+        max_age_ms=40,
     )
     w = codec.encode_command(f)
-    assert len(w) == codec.COMMAND_FRAME_LEN == 13
-    assert w[:4] == bytes([0xA5, 0x01, 7, 0x2A])
-    assert struct.unpack(">HHBH", w[4:11]) == (1000, 250, 0x0E, 250)
-    assert struct.unpack(">H", w[11:])[0] == codec.crc16(w[1:11])
+    assert len(w) == codec.COMMAND_FRAME_LEN == 17
+    assert w[:4] == bytes([0xA5, 0x01, 11, 0x2A])
+    assert struct.unpack(">HHBHHBB", w[4:15]) == (1000, 250, 0x0E, 250, 0xBEEF, 7, 40)
+    assert struct.unpack(">H", w[15:])[0] == codec.crc16(w[1:15])
     assert f.left_duty == 1.0 and f.right_duty == -0.25
+    assert codec.decode_frame(w) == f
+
+
+def test_cycle_numbers_compare_across_wrap_around():
+    assert codec.cycle_ahead(10, 10) == 0
+    assert codec.cycle_ahead(10, 11) == 1
+    assert codec.cycle_ahead(0xFFFF, 2) == 3  # wrapped: still newer
+    assert codec.cycle_ahead(2, 0xFFFF) == -3  # older: a replay
+    with pytest.raises(ProtocolError):
+        codec.CommandFrame(0, 0, 0, 0, cycle=1 << 16)
+    with pytest.raises(ProtocolError):
+        codec.CommandFrame(0, 0, 0, 0, age_ms=256)
 
 
 def test_reply_layout_and_round_trip():
@@ -84,7 +99,7 @@ def test_unwrap_int32():
 def test_parser_resyncs_after_a_false_start_inside_garbage():
     good = codec.encode_command(codec.CommandFrame(1, 10, 20, codec.FLAG_ENABLE))
     # a fake header that claims a command frame and swallows the start of the real one
-    stream = b"\x00\xa5\x01\x07\x99" + good + good
+    stream = b"\x00\xa5\x01\x0b\x99" + good + good
     p = codec.FrameParser()
     out = p.feed(stream)
     assert [f.seq for f in out] == [1, 1]
@@ -106,6 +121,9 @@ commands = st.builds(
     right_duty_pm=st.integers(0, 1000),
     flags=st.integers(0, 15),
     watchdog_ms=st.one_of(st.just(0), st.integers(20, 2000)),
+    cycle=st.integers(0, 0xFFFF),
+    age_ms=st.integers(0, 255),
+    max_age_ms=st.integers(0, 255),
 )
 replies = st.builds(
     codec.ReplyFrame,

@@ -37,7 +37,11 @@ def test_emulate_prints_pty_path_and_answers_commands(tmp_path):
 
         async def exchange():
             t = open_transport(path)
-            await t.write(codec.encode_command(WheelCommand(0.2, 0.2, enable=True).to_frame(42)))
+            # the unit obeys ENABLE only after a zero frame (protocol "Freshness")
+            await t.write(codec.encode_command(WheelCommand.stop().to_frame(41, cycle=1)))
+            await t.read_exactly(codec.REPLY_FRAME_LEN, 2.0)
+            cmd = WheelCommand(0.2, 0.2, enable=True).to_frame(42, cycle=2)
+            await t.write(codec.encode_command(cmd))
             rep = codec.decode_frame(await t.read_exactly(codec.REPLY_FRAME_LEN, 2.0))
             t.close()
             return rep

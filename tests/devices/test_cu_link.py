@@ -21,9 +21,10 @@ from omnid.devices.control_unit import (
     ControlUnitHealth,
     ControlUnitLink,
     ControlUnitSettings,
+    FreshnessGate,
     WheelCommand,
 )
-from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
+from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant, WireSpy
 from omnid.devices.transport import LoopTransport, Transport, pipe_pair
 from omnid.errors import ConfigError, DeviceClosed, DeviceError, ProtocolError
 
@@ -69,16 +70,26 @@ class UnhealthyProbe(logging.Handler):
             self.sent_at_unhealthy.append(self.link.health.commands_sent)
 
 
+async def control_cycle(link: ControlUnitLink) -> None:
+    """Stands in for the daemon's control loop: re-computes (re-submits) the latest command
+    every 10 ms. Frames carry a command only while a live cycle keeps submitting it."""
+    while True:
+        link.set_command(link.command)
+        await asyncio.sleep(0.01)
+
+
 def with_link(
     emu: ControlUnitEmulator, path: str, body: Callable[[ControlUnitLink], Awaitable[None]], **kw
 ):
     async def main():
         link = ControlUnitLink(settings(path, **kw))
         await link.start()
+        cycle = asyncio.create_task(control_cycle(link))
         try:
             await wait_for(lambda: link.health.healthy)
             await body(link)
         finally:
+            cycle.cancel()
             await link.stop()
 
     asyncio.run(main())
@@ -272,16 +283,59 @@ def test_watchdog_fault_reported_in_next_reply():
     # in-process pipe + injected clock: the unit's watchdog without wall-clock waiting
     now = [0.0]
     emu = ControlUnitEmulator(clock=lambda: now[0])
-    cmd = WheelCommand(0.5, 0.5, enable=True).to_frame(1, watchdog_ms=250)
-    assert emu.handle_bytes(codec.encode_command(cmd))  # first reply carries RESET
+
+    def send(cycle: int, enable: bool = True) -> codec.ReplyFrame:
+        cmd = WheelCommand(0.5, 0.5, enable=enable)
+        wire = codec.encode_command(cmd.to_frame(cycle & 0xFF, watchdog_ms=250, cycle=cycle))
+        rep = codec.decode_frame(emu.handle_bytes(wire))
+        assert isinstance(rep, codec.ReplyFrame)
+        return rep
+
+    assert send(1, enable=False).faults & codec.FAULT_RESET  # the first reply carries RESET
     now[0] = 0.2
-    rep = codec.decode_frame(emu.handle_bytes(codec.encode_command(cmd)))
-    assert isinstance(rep, codec.ReplyFrame) and rep.faults == 0 and rep.left_applied_pm == 500
+    rep = send(2)
+    assert rep.faults == 0 and rep.left_applied_pm == 500
     now[0] = 0.46
     assert emu.applied_duty == (0.0, 0.0)
-    rep = codec.decode_frame(emu.handle_bytes(codec.encode_command(cmd)))
-    assert isinstance(rep, codec.ReplyFrame)
-    assert rep.faults & codec.FAULT_WATCHDOG and rep.left_applied_pm == 500  # obeyed again
+    rep = send(3)  # after the trip ENABLE needs a zero frame first: refused, latched
+    assert rep.faults & codec.FAULT_WATCHDOG and rep.faults & codec.FAULT_STALE_COMMAND
+    assert rep.left_applied_pm == 0
+    send(4, enable=False)
+    assert send(5).left_applied_pm == 500  # obeyed again
+
+
+def test_unit_refuses_stale_replayed_and_endlessly_repeated_commands():
+    """Protocol "Freshness", enforced by the unit itself: a master whose control loop died but
+    whose link goes on sending the last command (the same cycle number) brakes after
+    MAX_AGE_MS; so does a command sent too old or an older cycle than one already obeyed."""
+    now = [0.0]
+    emu = ControlUnitEmulator(clock=lambda: now[0])
+    drive = WheelCommand(0.5, 0.5, enable=True)
+
+    def send(cycle: int, age_ms: int = 0, cmd: WheelCommand = drive) -> codec.ReplyFrame:
+        frame = cmd.to_frame(cycle & 0xFF, 250, cycle=cycle, age_ms=age_ms, max_age_ms=40)
+        rep = codec.decode_frame(emu.handle_bytes(codec.encode_command(frame)))
+        assert isinstance(rep, codec.ReplyFrame)
+        return rep
+
+    send(1, cmd=WheelCommand.stop())
+    for k, t in enumerate((0.02, 0.04, 0.06)):
+        now[0] = t
+        assert send(2 + k).left_applied_pm == 500  # a new cycle every period: driving
+    now[0] = 0.08
+    assert send(4).left_applied_pm == 500  # the same cycle again, 20 ms on: still fresh
+    now[0] = 0.11
+    rep = send(4)  # ... 50 ms on: the master's control loop is not computing any more
+    assert rep.left_applied_pm == 0 and rep.faults & codec.FAULT_STALE_COMMAND
+    assert send(5).left_applied_pm == 0  # and not before a zero frame
+    send(6, cmd=WheelCommand.stop())
+    now[0] = 0.12
+    assert send(7).left_applied_pm == 500
+    assert send(8, age_ms=45).left_applied_pm == 0  # computed too long before it was sent
+    send(9, cmd=WheelCommand.stop())
+    assert send(10).left_applied_pm == 500
+    assert send(3).left_applied_pm == 0  # an older cycle: replayed
+    assert emu.stale_refusals == 4
 
 
 def test_corrupted_command_is_ignored_and_counted_by_the_unit():
@@ -466,3 +520,102 @@ def test_port_that_opens_but_fails_at_once_is_retried_with_backoff_not_spun():
 
 def link_never_healthy(h: ControlUnitHealth) -> bool:
     return not h.healthy and h.replies_ok == 0
+
+
+def test_gate_sends_a_command_only_while_fresh_and_zero_after_any_gap():
+    gate = FreshnessGate(max_age_s=0.04, watchdog_ms=250)
+    assert not gate.frame(1, 0.0).enabled  # nothing computed yet
+    drive = WheelCommand(0.4, 0.4, enable=True)
+    gate.submit(drive, 0.0)
+    f = gate.frame(2, 0.01)
+    assert f.enabled and f.left_duty_pm == 400 and f.cycle == 1 and f.age_ms == 10
+    assert f.max_age_ms == 40 and f.watchdog_ms == 250
+    assert gate.frame(3, 0.03).enabled  # 30 ms old: still fresh
+    stale = gate.frame(4, 0.05)  # 50 ms old: nobody computed it again
+    assert not stale.enabled and stale.left_duty_pm == 0 and stale.age_ms == 50
+    gate.submit(drive, 0.06)
+    assert gate.frame(5, 0.07).cycle == 2
+    gate.submit(drive, 0.2)
+    # fresh command, but the sender itself was silent 130 ms (a stalled event loop): zero first
+    first = gate.frame(6, 0.2)
+    assert not first.enabled and first.left_duty_pm == 0
+    assert gate.frame(7, 0.21).enabled
+    assert not gate.frame(8, 0.22, healthy=False).enabled  # link unhealthy: zero
+    assert gate.zeroed_frames == 3
+
+
+def test_link_zeroes_a_command_no_live_cycle_renews(emu: ControlUnitEmulator):
+    """The control loop dies (no more submits) while the link task goes on: the wheels get
+    zero within two command periods, from the link's frames, not from the unit's watchdog."""
+
+    async def main():
+        link = ControlUnitLink(settings(emu.path or "", unit_watchdog_s=0.5))
+        await link.start()
+        try:
+            await wait_for(lambda: link.health.healthy)
+            spy = WireSpy(emu)
+            cycle = asyncio.create_task(control_cycle(link))
+            link.set_command(WheelCommand(0.5, 0.5, enable=True))
+            await wait_for(lambda: emu.applied_duty == (0.5, 0.5))
+            cycle.cancel()  # the loop is gone; the link is not
+            t_dead = time.monotonic()
+            await wait_for(lambda: emu.applied_duty == (0.0, 0.0))
+            zero_at = next(t for t, f in spy.frames if t >= t_dead and not f.enabled)
+            assert zero_at - t_dead < 0.5  # generous (loaded machine); by design ≤ 2 periods
+            n = emu.commands_received
+            await asyncio.sleep(0.2)
+            assert emu.commands_received > n  # frames keep flowing, all of them zero
+            assert all(not f.enabled and f.left_duty_pm == 0 for _, f in spy.after(zero_at))
+            assert emu.watchdog_trips == 0 and link.health.zeroed_frames > 0
+        finally:
+            await link.stop()
+
+    asyncio.run(main())
+
+
+def test_after_an_event_loop_stall_the_first_frame_is_zero(emu: ControlUnitEmulator):
+    async def main():
+        link = ControlUnitLink(settings(emu.path or "", unit_watchdog_s=0.25))
+        await link.start()
+        cycle = asyncio.create_task(control_cycle(link))
+        try:
+            await wait_for(lambda: link.health.healthy)
+            spy = WireSpy(emu)
+            link.set_command(WheelCommand(0.5, 0.5, enable=True))
+            await wait_for(lambda: emu.applied_duty == (0.5, 0.5))
+            time.sleep(0.6)  # the whole event loop stalls; the unit's watchdog stops the motors
+            t_back = time.monotonic()
+            assert emu.applied_duty == (0.0, 0.0) and emu.watchdog_trips == 1
+            await wait_for(lambda: len(spy.after(t_back)) >= 3)
+            first = spy.after(t_back)[0][1]
+            assert not first.enabled and first.left_duty_pm == first.right_duty_pm == 0
+            # the control cycle is alive again: the chair drives on (the core decides whether
+            # the rider's demand is still live; here the stand-in re-submits it)
+            await wait_for(lambda: emu.applied_duty == (0.5, 0.5))
+            assert emu.stale_refusals == 0  # the unit was re-armed by that zero frame
+        finally:
+            cycle.cancel()
+            await link.stop()
+
+    asyncio.run(main())
+
+
+def test_a_restarted_master_counting_from_zero_again_is_not_a_replay():
+    now = [0.0]
+    emu = ControlUnitEmulator(clock=lambda: now[0])
+
+    def send(cycle: int, enable: bool = True) -> codec.ReplyFrame:
+        cmd = WheelCommand(0.5, 0.5, enable=enable)
+        rep = codec.decode_frame(
+            emu.handle_bytes(codec.encode_command(cmd.to_frame(1, 250, cycle)))
+        )
+        assert isinstance(rep, codec.ReplyFrame)
+        return rep
+
+    send(900, enable=False)
+    assert send(901).left_applied_pm == 500
+    now[0] = 0.5  # the master died (watchdog), systemd restarted it: its cycles start again
+    send(1, enable=False)
+    now[0] = 0.52
+    assert send(2).left_applied_pm == 500
+    assert send(0).left_applied_pm == 0  # a frame older than the stop is still a replay

@@ -165,3 +165,44 @@ def test_teleop_command_line_end_to_end(tmp_path):
     assert code == 0, err
     assert [c.command for c in got] == ["forward", "left"]
     assert "forward: ok" in out
+
+
+def test_idle_clients_are_dropped_or_make_room_and_lines_are_rate_limited(tmp_path):
+    """Four idle clients no longer lock everyone out; a flooding client cannot starve others."""
+
+    async def go():
+        s = TeleopSettings(
+            socket_path=str(tmp_path / "t.sock"),
+            max_clients=2,
+            idle_timeout_s=1.0,
+            evict_idle_s=0.2,
+            max_lines_per_s=20.0,
+        )
+        got: list[KeyCommand] = []
+        srv = TeleopServer(s, on_command=got.append)
+        await srv.start()
+        try:
+            idle = [await asyncio.open_unix_connection(s.socket_path) for _ in range(2)]
+            await asyncio.sleep(0.3)  # both idle longer than evict_idle_s
+            r, w = await asyncio.open_unix_connection(s.socket_path)
+            w.write(b"left\n")
+            assert await asyncio.wait_for(r.readline(), 2.0) == b"ok\n"  # got a place
+            assert srv.evicted == 1
+            first = await asyncio.wait_for(idle[0][0].readline(), 2.0)
+            assert first.startswith(b"error idle")  # the idlest was told why
+            # a flood: 100 lines at once; about one second's budget is accepted
+            w.write(b"left\n" * 100)
+            replies = [await asyncio.wait_for(r.readline(), 2.0) for _ in range(100)]
+            ok = sum(x == b"ok\n" for x in replies)
+            assert 10 <= ok <= 30 and srv.rate_limited == 100 - ok
+            # the other idle client is dropped after idle_timeout_s of silence
+            line = await asyncio.wait_for(idle[1][0].readline(), 3.0)
+            assert line == b"error idle timeout\n"
+            assert await asyncio.wait_for(idle[1][0].read(), 2.0) == b""
+            w.close()
+            for _, iw in idle:
+                iw.close()
+        finally:
+            await srv.stop()
+
+    asyncio.run(go())

@@ -144,6 +144,8 @@ def test_silent_sensor_goes_stale_then_recovers(tmp_path, caplog):
         await _until(lambda: link.latest is not None)
         emu.silent = True
         await _until(lambda: _stale_rule_holds(link), step_s=0.002)
+        # and the link declares the sensor lost once enough requests went unanswered
+        await _until(lambda: link.health.stale_episodes >= 1, step_s=0.002)
         timeouts = link.health.timeouts
         emu.silent = False
         await _until(lambda: not _stale_rule_holds(link))

@@ -66,6 +66,19 @@ def test_segments_rotate_by_size_and_the_oldest_go_first(tmp_path: Path) -> None
         assert r.topic("/map") or f == left[-1]  # the last may hold only the closing stats
 
 
+def test_segments_rotate_by_age(tmp_path: Path) -> None:
+    settings = RecordSettings(path=str(tmp_path / "r-%H%M%S.mcap"), max_file_s=0.2)
+    rec = Recorder(settings, {}, threaded=False)
+    rec.start()
+    for k in range(3):
+        grid_records(rec, 2, t0=k)
+        rec.pump()
+        time.sleep(0.25)
+    rec.pump()
+    rec.close()
+    assert len(rec.segments) >= 3 and all(read_recording([p]).metadata for p in rec.segments)
+
+
 def test_an_existing_file_is_never_overwritten(tmp_path: Path) -> None:
     old = tmp_path / "ride.mcap"
     old.write_bytes(b"last ride")

@@ -88,7 +88,9 @@ def test_turn_toward_a_remembered_obstacle_outside_the_laser_field_is_refused():
 
     from omnid.daemon.core import ControlCore
 
-    box = Box(300.0, 1300.0, 540.0, 1000.0, 500.0)  # ahead on the left, then beside the chair
+    # ahead on the left, then beside the chair: 120 mm from its side, within the reach of the
+    # front-left corner (495 mm from the axle, with the margins 548) in a turn in place
+    box = Box(300.0, 1300.0, 470.0, 930.0, 500.0)
     course = room((box,), length_mm=6000.0)
     rider = head_script([("neutral", 0.5), ("forward", 9.0), ("neutral", 1.0), ("left", 6.0)])
     core = make_core()
@@ -123,7 +125,7 @@ def test_turn_toward_a_remembered_obstacle_outside_the_laser_field_is_refused():
     result = Simulator(course, creep, TRUTH, rider=slow).run(27.5)
     assert result.contacts == [] and result.min_clearance_mm > 25.0  # the side margin
     assert any(r.startswith("refused left: obstacle_stop") for _, r in result.refusals)
-    assert abs(result.trajectory[-1, 3]) < np.radians(45.0)  # the box 165 mm beside it
+    assert abs(result.trajectory[-1, 3]) < np.radians(45.0)  # the box 120 mm beside it
 
 
 def test_head_jitter_inside_the_dead_zone_moves_nothing():

@@ -56,7 +56,7 @@ def test_round_trip_over_a_real_socket(tmp_path):
         return float(counter["n"]) * 0.1, a, b
 
     path = tmp_path / "frames.sock"
-    with FrameServer(path, provider) as server:
+    with FrameServer(path, provider, frame_period_s=None) as server:
         t1, a1, b1 = fetch_frame(path)
         exp_a, exp_b = _images(1)
         assert t1 == pytest.approx(0.1)
@@ -97,7 +97,7 @@ def test_concurrent_clients_each_get_whole_frames(tmp_path):
 def test_bad_request_closes_only_that_connection(tmp_path):
     a, b = _images(3)
     path = tmp_path / "f.sock"
-    with FrameServer(path, lambda: (1.0, a, b)) as server:
+    with FrameServer(path, lambda: (1.0, a, b), frame_period_s=None) as server:
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
             s.settimeout(2.0)
             s.connect(str(path))
@@ -118,7 +118,7 @@ def test_failing_provider_closes_the_connection_and_the_server_survives(tmp_path
         return 2.0, a, b
 
     path = tmp_path / "f.sock"
-    with FrameServer(path, provider) as server:
+    with FrameServer(path, provider, frame_period_s=None) as server:
         with pytest.raises(DeviceError):
             fetch_frame(path)
         assert fetch_frame(path)[0] == 2.0
@@ -136,3 +136,33 @@ def test_a_regular_file_is_not_replaced(tmp_path):
     with pytest.raises(DeviceError, match="not a socket"):
         FrameServer(p, lambda: (0.0, *_images(0))).start()
     assert p.read_text() == "keep me"
+
+
+def test_frames_come_on_the_cameras_clock_with_their_exposure_time(tmp_path):
+    """A free-running camera: frames at the period, stamped with the middle of their exposure
+    (before the answer, by the readout), each frame sent once; dropped frames are skipped; a
+    provider that takes an argument renders for that exposure time."""
+    a, b = _images(5)
+    asked: list[float] = []
+
+    def provider(t_s):
+        asked.append(t_s)
+        return 0.0, a, b
+
+    path = tmp_path / "clock.sock"
+    period = 0.02
+    srv = FrameServer(path, provider, frame_period_s=period, readout_s=0.004, drop_rate=0.3)
+    with srv, socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(2.0)
+        s.connect(str(path))
+        got = []
+        for _ in range(30):
+            t_req = time.monotonic()
+            t, _, _ = request_frame(s)
+            got.append((t_req, t, time.monotonic()))
+    stamps = np.array([t for _, t, _ in got])
+    steps = np.diff(stamps) / period
+    assert np.allclose(steps, np.round(steps), atol=1e-6) and steps.min() > 1.0 - 1e-6
+    assert np.any(steps > 2.0 - 1e-6) and srv.frames_dropped > 0  # 30 % lost: some gaps
+    assert all(t_got >= t + 0.004 - 1e-3 for _, t, t_got in got)  # after the readout
+    assert asked == list(stamps)

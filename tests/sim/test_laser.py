@@ -198,6 +198,6 @@ def test_the_simulator_casts_and_renders_the_laser_it_is_given() -> None:
     diff = cap.base1.astype(float) - cap.mask1.astype(float)
     rc = np.rint(hits.pixels[hits.visible1 & sim.rig.cam1.in_disk(hits.pixels[:, :2], 3.0), :2])
     assert np.median(diff[rc[:, 0].astype(int), rc[:, 1].astype(int)]) > 60  # dots where cast
-    assert Simulator(empty_room(), None, settings=SimSettings(perception="off")).laser == (
-        ideal_lattice()
-    )  # the default stays the regular lattice until the new matcher lands (issue 9)
+    # the default is a physical, non-ideal laser (issue 9: the learned-laser matcher)
+    default = Simulator(empty_room(), None, settings=SimSettings(perception="off")).laser
+    assert default == LaserProjector() and default != ideal_lattice()

@@ -4,8 +4,11 @@ It applies the commanded duties to a *plant* — anything with ``step(left_duty,
 and ``clocks() -> (left, right)`` (total clocks, + forward); the default :class:`MotorPlant` is a
 first-order motor model (30 rpm at full duty, 15 clocks per turn, wheel circumference 471 mm,
 thesis 4.3.2.2–4.3.2.3) and the simulator passes the chair's dynamics instead. It switches the
-laser relay with a small delay, enforces the unit's own motor-stop watchdog, and injects faults:
-``drop_replies``, ``corrupt_replies``, ``stall``, ``die`` (close the pty = unplug), ``recover``.
+laser relay with a small delay, enforces the unit's own motor-stop watchdog and the command
+freshness rules of protocol version 2 (a stale, replayed or endlessly repeated command brakes;
+after power-up, a watchdog trip or such a brake, ENABLE is obeyed only after a zero frame), and
+injects faults: ``drop_replies``, ``corrupt_replies``, ``stall``, ``die`` (close the pty =
+unplug), ``recover``.
 
 Time is integrated lazily from an injectable monotonic ``clock`` at every received byte chunk
 and every query, so no ticking thread is needed and the simulator can run it on its own clock.
@@ -17,12 +20,15 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import logging
 import math
 import os
+import random
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
@@ -30,8 +36,9 @@ from omnid.devices import cu_codec as codec
 from omnid.devices.pty import PtyPort
 from omnid.devices.transport import LoopTransport
 from omnid.errors import DeviceError
+from omnid.logs import LogThrottle
 
-__all__ = ["ControlUnitEmulator", "MotorPlant", "Plant", "add_arguments", "run"]
+__all__ = ["ControlUnitEmulator", "MotorPlant", "Plant", "WireSpy", "add_arguments", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +99,8 @@ class ControlUnitEmulator:
         Monotonic time source, s (the simulator may pass its own).
     laser_delay_s:
         Relay switching delay; the reply reports the relay, not the request.
+    laser_jitter_s:
+        Each switch takes a further uniform 0…``laser_jitter_s`` (drawn from ``seed``).
     default_watchdog_s:
         Watchdog used when a command says ``WATCHDOG_MS = 0``.
     clock_offset:
@@ -104,6 +113,8 @@ class ControlUnitEmulator:
         *,
         clock: Callable[[], float] = time.monotonic,
         laser_delay_s: float = 0.02,
+        laser_jitter_s: float = 0.0,
+        seed: int = 0,
         default_watchdog_s: float = 0.25,
         clock_offset: int = 0,
         name: str = "cu-emulator",
@@ -111,9 +122,15 @@ class ControlUnitEmulator:
         self.plant: Plant = plant if plant is not None else MotorPlant()
         self._clock = clock
         self.laser_delay_s = laser_delay_s
+        self.laser_jitter_s = laser_jitter_s
+        self._laser_rng = random.Random(seed)
+        self._laser_delay_now = laser_delay_s
+        #: (t_s, on): when the relay actually switched (for the simulator's exposure model)
+        self.laser_switches: deque[tuple[float, bool]] = deque(maxlen=256)
         self.default_watchdog_s = default_watchdog_s
         self.clock_offset = clock_offset
         self.name = name
+        self._throttle = LogThrottle(log, interval_s=5.0, clock=clock)
         self._lock = threading.RLock()
         self._parser = codec.FrameParser(accept=(codec.TYPE_COMMAND,))
         self._t = clock()
@@ -125,6 +142,11 @@ class ControlUnitEmulator:
         self._last_cmd_t: float | None = None
         self._watchdog_s = default_watchdog_s
         self._latched = codec.FAULT_RESET
+        self._armed = False  # ENABLE is obeyed only after a zero frame (power-up, trips)
+        self._cycle: int | None = None  # the newest command cycle seen, and since when
+        self._cycle_since = self._t
+        self.stale_refusals = 0
+        self.last_refusal = ""
         self._injected_faults = 0
         self._rx_errors_seen = 0
         self.watchdog_trips = 0
@@ -152,9 +174,12 @@ class ControlUnitEmulator:
         self._integrate(now)
         if (
             self._laser_on != self._laser_request
-            and now - self._laser_change_t >= self.laser_delay_s
+            and now - self._laser_change_t >= self._laser_delay_now
         ):
             self._laser_on = self._laser_request
+            self.laser_switches.append(
+                (self._laser_change_t + self._laser_delay_now, self._laser_on)
+            )
 
     def _integrate(self, until: float) -> None:
         dt = until - self._t
@@ -171,10 +196,12 @@ class ControlUnitEmulator:
         if self._laser_request:
             self._laser_request = False
             self._laser_change_t = at
+            self._laser_delay_now = self.laser_delay_s
         self._latched |= codec.FAULT_WATCHDOG
+        self._armed = False
         self.watchdog_trips += 1
         self._last_cmd_t = None
-        log.info("%s: watchdog tripped, motors stopped", self.name)
+        self._throttle.info("watchdog", "%s: watchdog tripped, motors stopped", self.name)
 
     # -- protocol ------------------------------------------------------------------------
     def handle_bytes(self, data: bytes) -> bytes:
@@ -196,16 +223,54 @@ class ControlUnitEmulator:
                 out += self._obey(frame, now)
             return bytes(out)
 
+    def _refusal(self, cmd: codec.CommandFrame, now: float) -> str:
+        """Why an ENABLE command must not drive (protocol "Freshness"), or ""."""
+        max_age_s = (cmd.max_age_ms or codec.MAX_AGE_DEFAULT_MS) / 1000
+        if not self._armed:
+            return "ENABLE before a zero frame (after power-up, a watchdog trip or a refusal)"
+        if cmd.age_ms / 1000 > max_age_s:
+            return f"command {cmd.age_ms} ms old > {max_age_s * 1000:.0f} ms"
+        if self._cycle is not None:
+            ahead = codec.cycle_ahead(self._cycle, cmd.cycle)
+            if ahead < 0:
+                return f"cycle {cmd.cycle} older than {self._cycle} (replayed)"
+            if ahead == 0 and now - self._cycle_since > max_age_s:
+                return (
+                    f"cycle {cmd.cycle} repeated for {(now - self._cycle_since) * 1000:.0f} ms "
+                    f"> {max_age_s * 1000:.0f} ms"
+                )
+        return ""
+
     def _obey(self, cmd: codec.CommandFrame, now: float) -> bytes:
         self.commands_received += 1
         self._last_cmd_t = now
         self._watchdog_s = cmd.watchdog_ms / 1000 if cmd.watchdog_ms else self.default_watchdog_s
-        self._enabled = bool(cmd.flags & codec.FLAG_ENABLE)
+        drive = cmd.enabled
+        if drive:
+            why = self._refusal(cmd, now)
+            if why:
+                drive = False
+                self._armed = False
+                self._latched |= codec.FAULT_STALE_COMMAND
+                self.stale_refusals += 1
+                self.last_refusal = why
+                self._throttle.warning("stale", "%s: command refused: %s", self.name, why)
+        else:
+            self._armed = True
+        if not cmd.enabled:
+            # a stop re-arms and re-synchronises: a restarted master counts from its own cycle
+            if self._cycle != cmd.cycle:
+                self._cycle, self._cycle_since = cmd.cycle, now
+        elif self._cycle is None or codec.cycle_ahead(self._cycle, cmd.cycle) > 0:
+            self._cycle, self._cycle_since = cmd.cycle, now
+        self._enabled = drive
         self._duty = (cmd.left_duty, cmd.right_duty) if self._enabled else (0.0, 0.0)
         want_laser = bool(cmd.flags & codec.FLAG_LASER_ON)
         if want_laser != self._laser_request:
             self._laser_request = want_laser
             self._laser_change_t = now
+            jitter = self._laser_rng.uniform(0.0, self.laser_jitter_s) if self.laser_jitter_s else 0
+            self._laser_delay_now = self.laser_delay_s + jitter
         if self._drop:
             self._drop -= 1 if self._drop > 0 else 0
             return b""
@@ -354,6 +419,42 @@ class ControlUnitEmulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class WireSpy:
+    """Records every command frame an emulated unit receives, with the monotonic time its bytes
+    arrived — the bench's spy on the control-unit wire (``tools/fault_figures.py``, tests).
+
+    It wraps ``emulator.handle_bytes`` and decodes the stream with its own parser, so it sees the
+    frames even while the unit is stalled or dead. ``frames`` is bounded (``max_frames``).
+    """
+
+    def __init__(self, emulator: ControlUnitEmulator, max_frames: int = 200_000) -> None:
+        self.frames: collections.deque[tuple[float, codec.CommandFrame]] = collections.deque(
+            maxlen=max_frames
+        )
+        self._parser = codec.FrameParser(accept=(codec.TYPE_COMMAND,))
+        inner = emulator.handle_bytes
+
+        def spy(data: bytes) -> bytes:
+            t = time.monotonic()
+            for f in self._parser.feed(data):
+                if isinstance(f, codec.CommandFrame):
+                    self.frames.append((t, f))
+            return inner(data)
+
+        emulator.handle_bytes = spy  # type: ignore[method-assign]
+
+    def after(self, t_s: float) -> list[tuple[float, codec.CommandFrame]]:
+        """The frames received at or after monotonic ``t_s``, oldest first."""
+        return [(t, f) for t, f in list(self.frames) if t >= t_s]
+
+    def first_zero_after(self, t_s: float) -> float | None:
+        """Time of the first zero-duty frame at or after ``t_s`` (None: none yet)."""
+        for t, f in self.after(t_s):
+            if f.left_duty_pm == 0 and f.right_duty_pm == 0:
+                return t
+        return None
 
 
 # -- ``omnid emulate control-unit`` -----------------------------------------------------------

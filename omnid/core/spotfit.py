@@ -1,0 +1,373 @@
+"""Sub-pixel laser dot centres: every dot fitted at once as a sum of pixel-integrated Gaussians.
+
+The model of a background-free image around the dots is
+
+    I(x) = Σ_i A_i · T(x − c_i; σ_i)  +  b0_i + b_i · (x − c_i)   near dot i
+
+with T the unit-light Gaussian of standard deviation σ_i (px) integrated over each pixel's
+square (exact for the pixels of a Gaussian spot, not a point sample of it), A_i the dot's
+light (gray levels · px²), c_i its centre and a plane b0 + b·(x − c) for what is left of the
+local background near it (a neighbour's halo, the scene's flicker). Each dot is fitted in a
+window of ±3 σ by weighted least squares (a Gaussian taper of 2 σ, so the weights fade out
+before the window's edge), jointly with its neighbours: the current models of the neighbours
+whose light reaches the window are taken out of its data (block-Jacobi Gauss–Newton over the
+dots), so a close neighbour does not pull a centre toward it.
+
+Why this estimator (docs/benchmarks/detection.md). For a Gaussian spot in sensor noise it is
+the least-squares (maximum-likelihood) fit, at the Cramér–Rao bound within a few per cent.
+For any other spot that is point-symmetric about its centre — a flat top, a clipped top, a
+spot stretched by the mirror, a ring-shaped halo — the fit's fixed point is still the centre:
+there the residual is even about c, the derivative of the model with respect to c is odd and
+the taper is centred on c, so the normal equation of the shift is zero. The size σ_i is
+fitted too, so window and taper follow the measured spot.
+
+Cost: the template and the taper are separable, so every window sum is one small batched
+matrix product or a product of 1-D sums, and a neighbour's share of those sums is a product
+of two 1-D overlaps. A neighbour is taken out of a dot's window when its light reaches it
+(within twice the window's half-size per axis); for spots small against their spacing none
+is, and the fit costs three passes of a few vectorised operations per dot.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+#: Window half-size per spot sigma: the fit sees ±3 σ of each dot.
+WINDOW_PER_SIGMA = 3.0
+#: Gaussian taper of the fit's weights, in spot sigmas.
+TAPER_PER_SIGMA = 2.0
+#: Smallest and largest window half-size, px.
+MIN_HALF_PX, MAX_HALF_PX = 2, 10
+#: Gauss–Newton passes over all dots, updated in turn (see :func:`fit_spots`) ...
+ITERATIONS = 3
+#: ... and for small spots, updated all at once (their neighbours overlap them little).
+JACOBI_ITERATIONS = 2
+#: Spots larger than this (sigma, px) overlap their neighbours so much that the dots are
+#: updated in turn (Gauss–Seidel), not all at once (Jacobi: it oscillates there).
+SEQUENTIAL_FROM_PX = 1.5
+#: Largest centre step per pass, px (a fit that wants more is not near a dot).
+MAX_STEP_PX = 0.75
+
+_SQRT2 = math.sqrt(2.0)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+
+def erf(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Error function, |error| ≤ 1.5e-7 (Abramowitz & Stegun 7.1.26); numpy has none."""
+    s = np.sign(x)
+    a = np.abs(x)
+    t = 1.0 / (1.0 + 0.3275911 * a)
+    poly = t * (
+        0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429)))
+    )
+    return s * (1.0 - poly * np.exp(-a * a))
+
+
+def pixel_gaussian(
+    u: NDArray[np.float64], sigma: NDArray[np.float64], derivatives: bool = True
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The unit-area 1-D Gaussian of ``sigma`` integrated over pixels centred ``u`` px from its
+    centre, G(u) = Φ((u + ½)/σ) − Φ((u − ½)/σ), with dG/du and dG/dσ (zeros unless
+    ``derivatives``); arrays of the broadcast shape of u and sigma."""
+    hi = (u + 0.5) / sigma
+    lo = (u - 0.5) / sigma
+    g = 0.5 * (erf(hi / _SQRT2) - erf(lo / _SQRT2))
+    if not derivatives:
+        z = np.zeros_like(g)
+        return g, z, z
+    p_hi = np.exp(-0.5 * hi * hi) * _INV_SQRT_2PI
+    p_lo = np.exp(-0.5 * lo * lo) * _INV_SQRT_2PI
+    return g, (p_hi - p_lo) / sigma, -(p_hi * hi - p_lo * lo) / sigma
+
+
+def window_gaussian(
+    u0: NDArray[np.float64], size: int, sigma: NDArray[np.float64], derivatives: bool = True
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`pixel_gaussian` on rows of ``size`` consecutive pixels, the first ``u0`` (n, 1)
+    px from the centre, for ``sigma`` (n, 1): the pixels share their edges, so each edge's
+    erf and density are evaluated once. Arrays (n, size)."""
+    z = (u0 - 0.5 + np.arange(size + 1, dtype=np.float64)) / sigma  # the edges, in sigmas
+    cdf = erf(z / _SQRT2)
+    g = 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+    if not derivatives:
+        zero = np.zeros_like(g)
+        return g, zero, zero
+    pdf = np.exp(-0.5 * z * z) * _INV_SQRT_2PI
+    zp = z * pdf
+    return g, (pdf[:, 1:] - pdf[:, :-1]) / sigma, -(zp[:, 1:] - zp[:, :-1]) / sigma
+
+
+def window_half_px(sigma_px: float) -> int:
+    """The fit's window half-size for spots of ``sigma_px``."""
+    return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
+
+
+def near_pairs(
+    rows: NDArray, cols: NDArray, reach: float, sort: bool = True
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """All pairs (i, j), i ≠ j, of points at most ``reach`` px apart per axis, both ways
+    round (sorted by i if ``sort``): a k-d tree's pairs in the maximum norm."""
+    empty = np.zeros(0, np.intp), np.zeros(0, np.intp)
+    if len(rows) < 2:
+        return empty
+    tree = cKDTree(np.column_stack([rows, cols]).astype(np.float64))
+    pairs = tree.query_pairs(float(reach), p=np.inf, output_type="ndarray")
+    if len(pairs) == 0:
+        return empty
+    i = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.intp)
+    j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.intp)
+    if sort:
+        by_i = np.argsort(i, kind="stable")
+        i, j = i[by_i], j[by_i]
+    return i, j
+
+
+#: The 7 basis functions of a dot's fit as sums of (row, column) index pairs into the per-axis
+#: vectors {0: G, 1: 1, 2: ∂G/∂σ, 3: ∂G/∂u, 4: u}: light, constant, size, row shift, row
+#: slope, column shift, column slope.
+_BASIS: tuple[tuple[tuple[int, int], ...], ...] = (
+    ((0, 0),),
+    ((1, 1),),
+    ((2, 0), (0, 2)),
+    ((3, 0),),
+    ((4, 1),),
+    ((0, 3),),
+    ((1, 4),),
+)
+
+
+_Q_INDEX = np.array([5 * a + b for terms in _BASIS for a, b in terms], np.intp)
+_Q_ADD = np.zeros((len(_Q_INDEX), 7))
+_Q_ADD[np.arange(len(_Q_INDEX)), [k for k, terms in enumerate(_BASIS) for _ in terms]] = 1.0
+
+
+def fit_spots(
+    image: NDArray[np.float32],
+    saturated: NDArray[np.bool_] | None,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    sigma_px: float,
+    peak: NDArray,
+    start: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    iterations: int | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Fit every dot of a background-free ``image`` at once (see the module doc).
+
+    ``rows``, ``cols``: each dot's peak pixel; ``start``: optional sub-pixel starting centres;
+    ``sigma_px``: the starting spot sigma (it also sets the window); ``peak``: starting peak
+    values, gray levels; ``saturated``: pixels whose value is only a lower bound (or None):
+    each is replaced by the larger of its value and the current model (the censored-data
+    update), so a clipped top carries the information it has and no more. Returns, per dot,
+    the centre (row, col) px, the fitted peak (gray levels of the continuous profile,
+    A / 2πσ²) and sigma (px).
+
+    Each dot is updated against its neighbours' current models: all at once (Jacobi), or for
+    spots larger than :data:`SEQUENTIAL_FROM_PX` in turn (Gauss–Seidel over four groups: the
+    dots of a checkerboard of cells of the neighbour reach, so that no two dots of one group
+    see each other), as where spots overlap strongly updating all at once oscillates.
+    """
+    n = len(rows)
+    h = window_half_px(sigma_px)
+    off = np.arange(-h, h + 1, dtype=np.float64)
+    win_r = rows[:, None] + off[None, :]  # the window's pixel rows (n, size)
+    win_c = cols[:, None] + off[None, :]
+    rr = np.clip(win_r.astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
+    cc_ = np.clip(win_c.astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
+    inside = ((win_r >= 0) & (win_r < image.shape[0]))[:, :, None]
+    inside = inside & ((win_c >= 0) & (win_c < image.shape[1]))[:, None, :]
+    win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
+    sat_all: NDArray[np.bool_] | None = None
+    if saturated is not None:
+        sat_all = saturated[rr, cc_] & inside
+        if not sat_all.any():
+            sat_all = None
+    if start is None:
+        cr, cc = rows.astype(np.float64), cols.astype(np.float64)
+    else:
+        cr, cc = (np.asarray(a, dtype=np.float64).copy() for a in start)
+    st = _FitState(
+        win,
+        sat_all,
+        win_r,
+        win_c,
+        cr,
+        cc,
+        np.full(n, float(sigma_px)),
+        np.asarray(peak, dtype=np.float64) * 2.0 * math.pi * sigma_px * sigma_px,
+        (0.5 * sigma_px, h / 2.0),
+    )
+    # Every neighbour whose light (to ~3 σ) reaches a dot's window is taken out of it.
+    reach = 2 * h
+    pair_i, pair_j = near_pairs(cr, cc, reach)
+    if len(pair_i) == 0 or sigma_px <= SEQUENTIAL_FROM_PX:
+        groups = [np.arange(n)]
+    else:
+        colour = (np.floor(cr / reach).astype(np.int64) % 2) * 2
+        colour += np.floor(cc / reach).astype(np.int64) % 2
+        groups = [g for g in (np.flatnonzero(colour == k) for k in range(4)) if len(g)]
+    if iterations is None:
+        iterations = ITERATIONS if len(groups) > 1 else JACOBI_ITERATIONS
+    for _ in range(iterations):
+        for g in groups:
+            if len(groups) == 1:
+                _update(st, g, pair_i, pair_j)
+            else:
+                sel = np.isin(pair_i, g)
+                _update(st, g, pair_i[sel], pair_j[sel])
+    return st.cr, st.cc, st.mass / (2.0 * math.pi * st.s * st.s), st.s
+
+
+class _FitState:
+    """The dots' windows and their current fit (see :func:`fit_spots`)."""
+
+    def __init__(
+        self,
+        win: NDArray[np.float64],
+        sat: NDArray[np.bool_] | None,
+        win_r: NDArray[np.float64],
+        win_c: NDArray[np.float64],
+        cr: NDArray[np.float64],
+        cc: NDArray[np.float64],
+        s: NDArray[np.float64],
+        mass: NDArray[np.float64],
+        s_range: tuple[float, float],
+    ) -> None:
+        n = len(cr)
+        self.win, self.sat, self.win_r, self.win_c = win, sat, win_r, win_c
+        self.cr, self.cc, self.s, self.mass = cr, cc, s, mass
+        self.b0, self.br, self.bc = np.zeros(n), np.zeros(n), np.zeros(n)
+        self.s_range = s_range
+
+
+def _update(
+    st: _FitState, k: NDArray[np.intp], pair_i: NDArray[np.intp], pair_j: NDArray[np.intp]
+) -> None:
+    """One Gauss–Newton step of the dots ``k`` against the current models of their neighbours
+    (pairs (i, j), i in ``k``, sorted by i)."""
+    n = len(k)
+    win_r, win_c = st.win_r[k], st.win_c[k]
+    cr, cc, s, mass = st.cr[k], st.cc[k], st.s[k], st.mass[k]
+    b0, br, bc = st.b0[k], st.br[k], st.bc[k]
+    ur = win_r - cr[:, None]
+    uc = win_c - cc[:, None]
+    size = ur.shape[1]
+    gr, dr, sr = window_gaussian(ur[:, :1], size, s[:, None])
+    gc, dc, sc = window_gaussian(uc[:, :1], size, s[:, None])
+    taper = -0.5 / (TAPER_PER_SIGMA * s[:, None]) ** 2
+    wr, wc = np.exp(ur * ur * taper), np.exp(uc * uc * taper)
+    data = st.win[k]
+    if st.sat is not None:
+        sat = st.sat[k]
+        hit = np.flatnonzero(sat.any(axis=(1, 2)))
+        if len(hit):
+            own = mass[hit, None, None] * gr[hit, :, None] * gc[hit, None, :]
+            own += b0[hit, None, None] + br[hit, None, None] * ur[hit, :, None]
+            own += bc[hit, None, None] * uc[hit, None, :]
+            data = data.copy()
+            data[hit] = np.where(sat[hit], np.maximum(data[hit], own), data[hit])
+    # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}; every basis is a sum of row ⊗ column
+    # products of them, so every weighted window sum is a product of 1-D sums or of
+    # weighted row vectors · data · weighted column vectors.
+    one = np.ones_like(ur)
+    fr = np.stack([gr, one, sr, dr, ur], axis=1)  # (n, 5, size)
+    fc = np.stack([gc, one, sc, dc, uc], axis=1)
+    frw = fr * wr[:, None, :]
+    fcw = np.swapaxes(fc * wc[:, None, :], 1, 2)  # (n, size, 5)
+    q = frw @ data @ fcw  # (n, 5, 5)
+    if len(pair_i):
+        local = np.full(len(st.cr), -1, np.intp)
+        local[k] = np.arange(n)
+        q -= _neighbour_sums(local[pair_i], pair_j, frw, fcw, win_r, win_c, st, n)
+    pr = frw @ np.swapaxes(fr, 1, 2)  # (n, 5, 5) weighted 1-D sums of products, rows
+    pc = np.swapaxes(fcw, 1, 2) @ np.swapaxes(fc, 1, 2)  # columns
+    # The current model A·G⊗G + b0·1⊗1 + b_r·u⊗1 + b_c·1⊗u summed like the data: the
+    # residual's sums, i.e. the exact gradient.
+    q -= mass[:, None, None] * pr[:, :, 0, None] * pc[:, None, :, 0]
+    q -= b0[:, None, None] * pr[:, :, 1, None] * pc[:, None, :, 1]
+    q -= br[:, None, None] * pr[:, :, 4, None] * pc[:, None, :, 1]
+    q -= bc[:, None, None] * pr[:, :, 1, None] * pc[:, None, :, 4]
+    grad = q.reshape(n, 25)[:, _Q_INDEX] @ _Q_ADD  # (n, 7)
+    d_mass, d_b0, d_s, d_r, d_br, d_c, d_bc = _gauss_newton_step(grad, pr, pc)
+    new_mass = mass + d_mass
+    safe = np.where(np.abs(new_mass) > 1e-9, new_mass, 1e-9)
+    step_r = np.clip(-d_r / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    step_c = np.clip(-d_c / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    s_min, s_max = st.s_range
+    st.s[k] = np.clip(s * np.clip(1.0 + d_s / (safe * s), 0.75, 1.33), s_min, s_max)
+    st.mass[k] = new_mass
+    br, bc = br + d_br, bc + d_bc
+    st.br[k], st.bc[k] = br, bc
+    # The plane b0 + b·(x − c) re-expressed about the moved centre.
+    st.b0[k] = b0 + d_b0 + br * step_r + bc * step_c
+    st.cr[k], st.cc[k] = cr + step_r, cc + step_c
+
+
+def _gauss_newton_step(
+    grad: NDArray[np.float64], pr: NDArray[np.float64], pc: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], ...]:
+    """One Gauss–Newton step of every dot's 7 parameters (light, constant, size, row shift,
+    row slope, column shift, column slope; the size and shifts scaled by the light) from the
+    exact gradient ``grad`` (n, 7) and the per-axis weighted sums ``pr``, ``pc`` (n, 5, 5).
+
+    The step solves the three blocks of the normal matrix that do not couple when the window
+    is centred — even (light, constant, size) and, per axis, odd (shift, slope) — in closed
+    form; the gradient being exact, the fixed point is the exact weighted least-squares fit.
+    """
+    # Even block: sums of (G⊗G, 1⊗1, ∂σ) products; ∂σ = ∂G/∂σ⊗G + G⊗∂G/∂σ.
+    a = pr[:, 0, 0] * pc[:, 0, 0]
+    b = pr[:, 0, 1] * pc[:, 0, 1]
+    c = pr[:, 0, 2] * pc[:, 0, 0] + pr[:, 0, 0] * pc[:, 0, 2]
+    d = pr[:, 1, 1] * pc[:, 1, 1]
+    e = pr[:, 1, 2] * pc[:, 1, 0] + pr[:, 1, 0] * pc[:, 1, 2]
+    f = pr[:, 2, 2] * pc[:, 0, 0] + 2.0 * pr[:, 0, 2] * pc[:, 0, 2] + pr[:, 0, 0] * pc[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    det = np.where(np.abs(det) > 1e-30, det, 1e-30)
+    g0, g1, g2 = grad[:, 0], grad[:, 1], grad[:, 2]
+    out = [
+        (c00 * g0 + c01 * g1 + c02 * g2) / det,
+        (c01 * g0 + c11 * g1 + c12 * g2) / det,
+        (c02 * g0 + c12 * g1 + c22 * g2) / det,
+    ]
+    # Odd blocks: (∂G/∂u⊗G, u⊗1) for rows, (G⊗∂G/∂u, 1⊗u) for columns.
+    for m11, m12, m22, gi, gj in (
+        (pr[:, 3, 3] * pc[:, 0, 0], pr[:, 3, 4] * pc[:, 0, 1], pr[:, 4, 4] * pc[:, 1, 1], 3, 4),
+        (pr[:, 0, 0] * pc[:, 3, 3], pr[:, 0, 1] * pc[:, 3, 4], pr[:, 1, 1] * pc[:, 4, 4], 5, 6),
+    ):
+        det2 = m11 * m22 - m12 * m12
+        det2 = np.where(np.abs(det2) > 1e-30, det2, 1e-30)
+        out.append((m22 * grad[:, gi] - m12 * grad[:, gj]) / det2)
+        out.append((m11 * grad[:, gj] - m12 * grad[:, gi]) / det2)
+    return tuple(out)
+
+
+def _neighbour_sums(
+    i: NDArray[np.intp],
+    j: NDArray[np.intp],
+    frw: NDArray[np.float64],
+    fcw: NDArray[np.float64],
+    win_r: NDArray[np.float64],
+    win_c: NDArray[np.float64],
+    st: _FitState,
+    n: int,
+) -> NDArray[np.float64]:
+    """(n, 5, 5): what the current models of the neighbours j (indices into ``st``) add to the
+    window sums of the dots i (indices into ``frw``, ``fcw``, ``win_r``, ``win_c``; pairs
+    sorted by i). A model is separable, so each pair's share is an outer product of two 1-D
+    overlaps."""
+    size = win_r.shape[1]
+    sj = st.s[j, None]
+    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
+    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    vr = (frw[i] @ gjr[:, :, None])[:, :, 0]  # (pairs, 5)
+    vc = (gjc[:, None, :] @ fcw[i])[:, 0, :]
+    contrib = (st.mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
+    out = np.zeros((n, 25))
+    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    out[i[starts]] = np.add.reduceat(contrib, starts, axis=0)
+    return out.reshape(n, 5, 5)

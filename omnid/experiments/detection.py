@@ -1,0 +1,181 @@
+"""Dot detection scored over the spot models: random rigs, random lasers, random spots.
+
+One *case* is a capture of a named scene on a rig drawn with :func:`~omnid.sim.rigs.random_rig`,
+lit by a laser drawn with :func:`~omnid.sim.laser.random_laser`, its dots imaged by a spot
+model of one family drawn with :func:`~omnid.sim.render.random_spots`, under the realistic
+sensor (read and shot noise, 3 % flicker). The truth of each dot is the projection of its 3-D
+centre (docs/laser.md). Scoring, per camera:
+
+    recall      true dots ≥ 4 px inside the mirror disk with a detection within 1.5 px
+    false dots  detections (≥ 4 px inside the disk) with no true dot within 1.5 px, plus
+                second detections of one dot
+    centre RMS  over the matched dots that are *isolated*: no other true dot within
+                2.5 · the spot sigma (a doubled beam closer than that images as one blob; it
+                is found, but no single centre is its truth)
+
+Used by ``tools/bench_detect.py`` and the detection tests.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnid.core.geometry import MirrorCamera, StereoRig
+from omnid.core.types import StereoCapture
+from omnid.sim.laser import random_laser
+from omnid.sim.render import (
+    SPOT_KINDS,
+    RenderOptions,
+    SpotKind,
+    SpotModel,
+    laser_image,
+    random_spots,
+    render_hits,
+)
+from omnid.sim.rigs import random_rig
+from omnid.sim.scenes import get_scene
+from omnid.sim.specs import stream
+from omnid.sim.world import LaserHits, cast_laser
+
+#: Dots this close to the mirror disk's edge lose light to it: not scored, px.
+EDGE_MARGIN_PX = 4.0
+#: A detection within this of a true dot finds it, px.
+MATCH_TOL_PX = 1.5
+#: Scenes the cases alternate between.
+CASE_SCENES = ("floor", "three_boxes")
+
+
+@dataclass(frozen=True)
+class Case:
+    """One capture with its truth: rig, laser hits, spot model."""
+
+    kind: str
+    index: int
+    rig: StereoRig
+    hits: LaserHits
+    spots: SpotModel
+    capture: StereoCapture
+
+    def truth(self, camera: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """True centres (K, 2) px of the dots camera 1 or 2 sees (≥ the edge margin inside its
+        disk), and which of them are isolated (see the module doc)."""
+        cam = self.rig.cam1 if camera == 1 else self.rig.cam2
+        vis = self.hits.visible1 if camera == 1 else self.hits.visible2
+        cols = slice(0, 2) if camera == 1 else slice(2, 4)
+        t = self.hits.pixels[vis][:, cols]
+        t = t[cam.in_disk(t, EDGE_MARGIN_PX)]
+        return t, isolated(t, self.spots)
+
+
+def isolated(truth: NDArray[np.float64], spots: SpotModel) -> NDArray[np.bool_]:
+    """(K,) true dots with no other within 2.5 spot sigmas (the largest the model makes)."""
+    if len(truth) < 2:
+        return np.ones(len(truth), dtype=bool)
+    grow = 1.0 + max(spots.rim_radial, spots.rim_tangential, 0.0)
+    blend = max(3.0, 2.5 * spots.sigma_px * grow)
+    d = np.hypot(truth[:, None, 0] - truth[None, :, 0], truth[:, None, 1] - truth[None, :, 1])
+    np.fill_diagonal(d, np.inf)
+    return np.asarray(d.min(axis=1) >= blend)
+
+
+def case(kind: SpotKind, index: int) -> Case:
+    """The ``index``-th case of spot family ``kind`` (deterministic: the seed is derived from
+    both, with one stream per drawn thing)."""
+    seed = 1000 * SPOT_KINDS.index(kind) + index
+    rig = random_rig(stream(seed, "rig"))
+    laser = random_laser(stream(seed, "laser"))
+    spots = random_spots(stream(seed, "spots"), kind)
+    scene = get_scene(CASE_SCENES[index % len(CASE_SCENES)])
+    hits = cast_laser(scene.world, scene.pose, scene.mount, laser, rig)
+    capture = render_hits(rig, hits, seed, RenderOptions.realistic(spots=spots))
+    return Case(kind, index, rig, hits, spots, capture)
+
+
+def spot_floor_px(spots: SpotModel, cam: MirrorCamera, seed: int = 0) -> float:
+    """The irreducible centre error of a spot model, px: the RMS distance between the
+    centroid of the noise-free light of isolated realised spots (their own halo included, no
+    sensor, no neighbours) and the projected point. Zero for deterministic models; the speckle
+    grains on a dot and in its halo move it."""
+    rng = np.random.default_rng(seed)
+    spots = replace(spots, ghost_fraction=0.0)
+    half = math.ceil(spots.reach_px())
+    step = 2 * half + 4
+    g = np.arange(-cam.disk_radius_px, cam.disk_radius_px, step)
+    rr, cc = np.meshgrid(g, g, indexing="ij")
+    centre = np.array([cam.center_row_px, cam.center_col_px])
+    pts = np.column_stack([rr.ravel(), cc.ravel()]) + centre
+    pts = pts[cam.in_disk(pts, half + 2.0)]
+    pts = pts + rng.uniform(-0.5, 0.5, pts.shape)
+    img = laser_image(cam, pts, spots, rng)
+    off = np.arange(-half, half + 1)
+    errs = []
+    for r, c in pts:
+        r0, c0 = round(r), round(c)
+        win = img[r0 - half : r0 + half + 1, c0 - half : c0 + half + 1].astype(np.float64)
+        m = win.sum()
+        errs.append([r0 + (win.sum(axis=1) @ off) / m - r, c0 + (win.sum(axis=0) @ off) / m - c])
+    e = np.asarray(errs)
+    return float(np.sqrt((e**2).sum(axis=1).mean()))
+
+
+@dataclass(frozen=True)
+class Score:
+    """Detection against truth in one image: ``recall`` (0–1), ``false_dots``, the centre
+    errors (M, 2) px of the isolated matched dots and their indices ``matched`` (M,) into the
+    truth, and the number of true dots."""
+
+    recall: float
+    false_dots: int
+    errors: NDArray[np.float64]
+    dots: int
+    matched: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, np.intp))
+
+    def on(self, dots: NDArray[np.intp]) -> NDArray[np.float64]:
+        """The errors of the matched dots among ``dots`` (truth indices)."""
+        return self.errors[np.isin(self.matched, dots)]
+
+    @property
+    def rms_px(self) -> float:
+        e = self.errors
+        return float(np.sqrt((e**2).sum(axis=1).mean())) if len(e) else float("nan")
+
+
+def score(
+    found: NDArray[np.float64],
+    truth: NDArray[np.float64],
+    iso: NDArray[np.bool_],
+    cam: MirrorCamera,
+) -> Score:
+    """Score detections ``found`` (N, ≥2) against ``truth`` (K, 2) (see the module doc)."""
+    f = np.asarray(found, dtype=np.float64)
+    if len(f):
+        f = f[cam.in_disk(f[:, :2], EDGE_MARGIN_PX)]
+    if len(truth) == 0:
+        return Score(1.0, len(f), np.zeros((0, 2)), 0)
+    if len(f) == 0:
+        return Score(0.0, 0, np.zeros((0, 2)), len(truth))
+    d = np.hypot(f[:, None, 0] - truth[None, :, 0], f[:, None, 1] - truth[None, :, 1])
+    j = d.argmin(axis=1)
+    near = d.min(axis=1) < MATCH_TOL_PX
+    nearest = np.where(near[:, None], d, np.inf).argmin(axis=0)  # best detection per dot
+    first = near & (nearest[j] == np.arange(len(f)))
+    found_dot = np.zeros(len(truth), dtype=bool)
+    found_dot[j[first]] = True
+    false_dots = int((~near).sum() + (near & ~first).sum())
+    keep = first & iso[j]
+    errors = f[keep, :2] - truth[j[keep]]
+    return Score(float(found_dot.mean()), false_dots, errors, len(truth), j[keep].astype(np.intp))
+
+
+def pooled_rms(scores: list[Score] | list[NDArray[np.float64]]) -> float:
+    """RMS over all the isolated matched dots of several images (scores or error arrays), px."""
+    e = [s.errors if isinstance(s, Score) else s for s in scores]
+    e = [x for x in e if len(x)]
+    if not e:
+        return float("nan")
+    all_e = np.vstack(e)
+    return float(np.sqrt((all_e**2).sum(axis=1).mean()))

@@ -1,0 +1,368 @@
+"""The simulated cameras: a free-running frame clock, exposures, dropped frames, and a scene
+whose texture is fixed to the world, so that a chair in motion sees its floor move between
+frames while its laser dots (fixed to the chair) do not.
+
+What is modelled, and why it matters for depth at the frame rate:
+
+* **Frame clock** — frame k is exposed around t_k = phase + k / fps (the phase is random per
+  run: the cameras free-run, nothing aligns them with the control loop), for ``exposure_s``;
+  it is delivered ``readout_s`` after the middle of its exposure and carries t_k as its capture
+  time. A share ``drop_rate`` of frames is lost (USB hiccups, a busy driver).
+* **Laser timing** — each frame shows the laser dots scaled by the share of its exposure during
+  which the laser was actually lit (the control unit's relay history, switch latency included):
+  a frame taken while the relay switched shows dim dots.
+* **Motion between frames** — each frame is rendered at the chair's pose at t_k. The scene
+  texture is a function of the world point each pixel sees (floor, box tops and sides, the
+  bottom of a drop-off), found by casting the pixel's viewing ray (SPEC §2: a pinhole at the
+  mirror axis) on a coarse grid. Texture: a smooth random field (as ``render.py``'s scene) plus
+  fine detail, or square tiles with grout lines; pre-blurred to a floor pixel's footprint.
+
+Not modelled: motion blur within an exposure (at 240 mm/s and 8 ms: 0.2 px on the floor),
+rolling shutter, auto-exposure, specular highlights, moving shadows.
+
+The dots' shapes, halos and ghosts come from :func:`omnid.sim.render.laser_image` (the spot
+model of ``render.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from omnid.config import require
+from omnid.core.geometry import MirrorCamera, StereoRig
+from omnid.sim.render import OUTSIDE_DISK_LEVEL, RenderOptions, hits_flux, laser_image
+from omnid.sim.world import LaserHits, RigMount, World
+
+Pose = tuple[float, float, float]
+Image = NDArray[np.uint8]
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Timing and scene of the simulated cameras (s, mm, gray levels)."""
+
+    fps: float = 30.0
+    exposure_s: float = 0.008
+    readout_s: float = 0.006  # middle of the exposure → frame pair delivered
+    drop_rate: float = 0.0  # share of frame pairs lost
+    phase_s: float | None = None  # frame clock phase; None: drawn from the seed
+    texture: Literal["smooth", "tiles"] = "smooth"
+    # where the texture is fixed: "world" — on the floor, the drop-off bottoms and the boxes
+    # (their sides and tops move with a parallax the floor's motion compensation does not
+    # follow); "floor" — on the floor and drop-off bottoms only, boxes a uniform gray;
+    # "camera" — in the image (the scene does not move when the chair does: no motion residue,
+    # what render.py draws; the cheapest)
+    textured: Literal["world", "floor", "camera"] = "world"
+    texture_level: float = 70.0  # mean gray of the scene
+    texture_contrast: float = 25.0  # amplitude of the coarse texture (as render.py's scene)
+    texture_detail: float = 6.0  # amplitude of the fine texture (grain ~ 3 floor px)
+    tile_mm: float = 300.0
+    grout_mm: float = 10.0
+    grout_gray: float = 35.0  # grout this much darker than the tile
+    grid_px: int = 4  # the viewing rays are cast on a grid this coarse
+
+    def __post_init__(self) -> None:
+        require(0 < self.fps <= 240, "fps", "must be in (0, 240]")
+        require(0 < self.exposure_s < 1.0 / self.fps, "exposure_s", "must be in (0, 1/fps)")
+        require(self.readout_s >= self.exposure_s / 2, "readout_s", "must be ≥ exposure_s/2")
+        require(0 <= self.drop_rate < 1, "drop_rate", "must be in [0, 1)")
+        require(self.texture in ("smooth", "tiles"), "texture", "must be smooth or tiles")
+        require(
+            self.textured in ("world", "floor", "camera"),
+            "textured",
+            "must be world, floor or camera",
+        )
+        require(1 <= self.grid_px <= 16, "grid_px", "must be in 1..16")
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.fps
+
+
+@dataclass(frozen=True)
+class SimFrame:
+    """What the simulated camera knows of one frame pair (rendered only when it is used)."""
+
+    index: int
+    t_s: float  # middle of the exposure: the capture time
+    pose: Pose  # the chair's pose at t_s
+    lit: float  # share of the exposure with the laser lit, [0, 1]
+    seed: int
+    world: int = 0  # the version of the world it was exposed in (worlds change: hazards)
+
+    @property
+    def laser(self) -> bool:
+        """Any laser light in this frame."""
+        return self.lit > 0.0
+
+
+class SceneTexture:
+    """Gray levels fixed to world points (x, y, h) mm: a 2-D texture image over the world's
+    floor extent, sampled at (x + 0.7·h, y − 0.7·h) so that box sides are textured too."""
+
+    def __init__(
+        self,
+        model: CameraModel,
+        extent_mm: tuple[float, float, float, float],
+        seed: int,
+        texel_mm: float = 5.0,
+        floor_px_mm: float = 10.0,
+    ) -> None:
+        x0, x1, y0, y1 = extent_mm
+        self.texel_mm = texel_mm
+        self.x0, self.y0 = x0, y0
+        cols = math.ceil((x1 - x0) / texel_mm) + 2
+        rows = math.ceil((y1 - y0) / texel_mm) + 2
+        rng = np.random.default_rng(seed)
+
+        def field(cell_mm: float) -> NDArray[np.float32]:
+            n = max(2, int(cell_mm / texel_mm))
+            coarse = rng.standard_normal((rows // n + 3, cols // n + 3)).astype(np.float32)
+            big = cv2.resize(
+                coarse, ((cols // n + 3) * n, (rows // n + 3) * n), interpolation=cv2.INTER_CUBIC
+            )
+            return np.asarray(big[:rows, :cols], dtype=np.float32)
+
+        img = model.texture_level + model.texture_contrast * field(245.0)
+        img = img + model.texture_detail * field(30.0)
+        if model.texture == "tiles":
+            xs = x0 + texel_mm * np.arange(cols, dtype=np.float64)[None, :]
+            ys = y0 + texel_mm * np.arange(rows, dtype=np.float64)[:, None]
+            half = model.tile_mm / 2
+
+            def cover(d: NDArray[np.float64]) -> NDArray[np.float64]:  # area-sampled grout
+                return np.clip((model.grout_mm / 2 - d) / texel_mm + 0.5, 0.0, 1.0)
+
+            gx = cover(np.abs(((xs + half) % model.tile_mm) - half))
+            gy = cover(np.abs(((ys + half) % model.tile_mm) - half))
+            img = img - model.grout_gray * np.maximum(gx, gy).astype(np.float32)
+        # pre-filter to a floor pixel's footprint (the mirror images the floor at a uniform
+        # ~10 mm per px): sampling then does not alias
+        sigma = 0.4 * floor_px_mm / texel_mm
+        self.image = np.asarray(cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma))
+
+    def texel_coordinates(
+        self, x_mm: NDArray[np.float64], y_mm: NDArray[np.float64], h_mm: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Texture image coordinates (col, row) of world points (x, y, h) mm."""
+        u = (x_mm + 0.7 * h_mm - self.x0) / self.texel_mm
+        v = (y_mm - 0.7 * h_mm - self.y0) / self.texel_mm
+        return u.astype(np.float32), v.astype(np.float32)
+
+    def sample_texels(self, u: NDArray[np.float32], v: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Gray levels at texture coordinates (bilinear, wrapping at the edges)."""
+        out = cv2.remap(self.image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        return np.asarray(out, dtype=np.float32)
+
+
+class _CameraRays:
+    """The viewing rays of one camera on a coarse grid (slopes X/Z, (Y − Y_i)/Z)."""
+
+    def __init__(self, cam: MirrorCamera, grid_px: int) -> None:
+        rows, cols = cam.image_shape
+        require(rows % grid_px == 0 and cols % grid_px == 0, "grid_px", "must divide the image")
+        self.cam = cam
+        self.shape = (rows, cols)
+        self.grid_shape = (rows // grid_px, cols // grid_px)
+        # node j stands for pixel j·step + (step − 1)/2: where cv2.resize puts it
+        half = (grid_px - 1) / 2
+        gr = np.arange(self.grid_shape[0], dtype=np.float64) * grid_px + half
+        gc = np.arange(self.grid_shape[1], dtype=np.float64) * grid_px + half
+        rr, cc = np.meshgrid(gr, gc, indexing="ij")
+        sl = cam.ray_slopes(np.column_stack([rr.ravel(), cc.ravel()]))
+        self.sx, self.sy = sl[:, 0], sl[:, 1]
+        dr = np.arange(rows, dtype=np.float32)[:, None] - np.float32(cam.center_row_px)
+        dc = np.arange(cols, dtype=np.float32)[None, :] - np.float32(cam.center_col_px)
+        self.disk = (dr * dr + dc * dc) <= np.float32(cam.disk_radius_px**2)
+
+    def world_hits(
+        self, pose: Pose, mount: RigMount, boxes: NDArray[np.float64], pits: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """World (x, y, h) of the first surface each grid ray meets (floor, box, pit)."""
+        H = mount.height_mm
+        px, py, th = pose
+        c, s = math.cos(th), math.sin(th)
+        # point at depth Z on the ray: world xy = a + Z·b (rig → robot: x = X + offset, y = −Y)
+        ox, oy = mount.x_offset_mm, -self.cam.y_mm
+        ax, ay = px + c * ox - s * oy, py + s * ox + c * oy
+        bx = c * self.sx - s * (-self.sy)
+        by = s * self.sx + c * (-self.sy)
+        z = np.full(len(bx), H)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for x0, x1, y0, y1, hgt in boxes:
+                zin, zout = _slab(ax, bx, x0, x1, np.full_like(bx, H - hgt), np.full_like(bx, H))
+                zin2, zout2 = _slab(ay, by, y0, y1, zin, zout)
+                hit = (zin2 <= zout2) & (zin2 < z) & (zin2 >= 0)
+                z = np.where(hit, zin2, z)
+            floor = z >= H
+            for x0, x1, y0, y1, depth in pits:
+                fx, fy = ax + H * bx, ay + H * by
+                inside = floor & (fx >= x0) & (fx <= x1) & (fy >= y0) & (fy <= y1)
+                if not np.any(inside):
+                    continue
+                _, zout = _slab(ax, bx, x0, x1, np.full_like(bx, H), np.full_like(bx, H + depth))
+                _, zout2 = _slab(ay, by, y0, y1, np.full_like(bx, H), zout)
+                z = np.where(inside, np.clip(zout2, H, H + depth), z)
+        return ax + z * bx, ay + z * by, H - z
+
+
+def _slab(
+    a: float,
+    b: NDArray[np.float64],
+    lo: float,
+    hi: float,
+    zin: NDArray[np.float64],
+    zout: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Narrow the depth interval [zin, zout] of rays a + Z·b to where lo ≤ a + Z·b ≤ hi."""
+    t0 = (lo - a) / b
+    t1 = (hi - a) / b
+    near = np.where(b != 0, np.minimum(t0, t1), np.where((a >= lo) & (a <= hi), -np.inf, np.inf))
+    far = np.where(b != 0, np.maximum(t0, t1), np.where((a >= lo) & (a <= hi), np.inf, -np.inf))
+    return np.maximum(zin, near), np.minimum(zout, far)
+
+
+class SimCamera:
+    """The stereo cameras of a simulated rig: which frames exist when, and what they show."""
+
+    def __init__(
+        self,
+        model: CameraModel,
+        rig: StereoRig,
+        mount: RigMount,
+        world: World,
+        extent_mm: tuple[float, float, float, float],
+        seed: int = 0,
+        render_options: RenderOptions | None = None,
+    ) -> None:
+        self.model = model
+        self.rig = rig
+        self.mount = mount
+        self._rng = np.random.default_rng(seed + 104729)
+        phase = model.phase_s
+        self.phase_s = float(self._rng.uniform(0, model.period_s)) if phase is None else phase
+        self.options = render_options or RenderOptions()
+        self.texture = SceneTexture(model, extent_mm, seed + 15485863)
+        self._rays = (_CameraRays(rig.cam1, model.grid_px), _CameraRays(rig.cam2, model.grid_px))
+        self._geometry: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        self.world_version = 0
+        self.set_world(world)
+        self._fixed_scene: list[NDArray[np.float32] | None] = [None, None]
+        self._next_index = 0
+        self.frames = 0
+        self.dropped = 0
+
+    def set_world(self, world: World) -> int:
+        """The world changed (a hazard appeared): frames exposed from now on show the new one
+        (a frame keeps the version it was exposed in). Returns the new version."""
+        boxes = np.array(
+            [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm, b.height_mm) for b in world.boxes],
+            dtype=np.float64,
+        ).reshape(-1, 5)
+        pits = np.array(
+            [(d.x_min_mm, d.x_max_mm, d.y_min_mm, d.y_max_mm, d.depth_mm) for d in world.dropoffs],
+            dtype=np.float64,
+        ).reshape(-1, 5)
+        self.world_version = len(self._geometry)
+        self._geometry.append((boxes, pits))
+        self._boxes, self._pits = boxes, pits
+        return self.world_version
+
+    def exposure_mid_s(self, index: int) -> float:
+        return self.phase_s + index * self.model.period_s
+
+    def delivered_until(
+        self,
+        now_s: float,
+        pose_at: Callable[[float], Pose],
+        lit_share: Callable[[float, float], float],
+    ) -> list[SimFrame]:
+        """The frame pairs delivered up to ``now_s`` (each once, dropped ones left out)."""
+        m = self.model
+        out: list[SimFrame] = []
+        while self.exposure_mid_s(self._next_index) + m.readout_s <= now_s + 1e-9:
+            k = self._next_index
+            self._next_index += 1
+            t = self.exposure_mid_s(k)
+            seed = int(self._rng.integers(1 << 31))
+            if m.drop_rate > 0 and self._rng.uniform() < m.drop_rate:
+                self.dropped += 1
+                continue
+            lit = lit_share(t - m.exposure_s / 2, t + m.exposure_s / 2)
+            out.append(SimFrame(k, t, pose_at(t), lit, seed, self.world_version))
+            self.frames += 1
+        return out
+
+    def skip_until(self, now_s: float) -> None:
+        """Frames before ``now_s`` were not needed: the clock moves on without delivering them."""
+        while self.exposure_mid_s(self._next_index) + self.model.readout_s <= now_s + 1e-9:
+            self._next_index += 1
+
+    def scene(self, cam_index: int, pose: Pose, world: int | None = None) -> NDArray[np.float32]:
+        """The gray scene camera ``cam_index`` (0, 1) sees at ``pose`` in world version
+        ``world`` (default: the latest), without laser or noise (``textured: camera``: the same
+        whatever the pose)."""
+        if self.model.textured == "camera":
+            fixed = self._fixed_scene[cam_index]
+            if fixed is None:
+                fixed = self._world_scene(cam_index, (0.0, 0.0, 0.0), "floor", 0)
+                self._fixed_scene[cam_index] = fixed
+            return fixed.copy()
+        version = self.world_version if world is None else world
+        return self._world_scene(cam_index, pose, self.model.textured, version)
+
+    def _world_scene(
+        self, cam_index: int, pose: Pose, textured: str, world: int
+    ) -> NDArray[np.float32]:
+        rays = self._rays[cam_index]
+        boxes, pits = self._geometry[world]
+        x, y, h = rays.world_hits(pose, self.mount, boxes, pits)
+        g = rays.grid_shape
+        rows, cols = rays.shape
+        u, v = self.texture.texel_coordinates(x, y, h)
+
+        def full(a: NDArray[np.float32]) -> NDArray[np.float32]:  # grid → every pixel, bilinear
+            out = cv2.resize(a.reshape(g), (cols, rows), interpolation=cv2.INTER_LINEAR)
+            return np.asarray(out, dtype=np.float32)
+
+        gray = self.texture.sample_texels(full(u), full(v))
+        if textured == "floor":
+            on_box = (h > 1.0).astype(np.float32).reshape(g)  # above the floor: a box
+            box = cv2.resize(on_box, (cols, rows), interpolation=cv2.INTER_LINEAR) > 0.5
+            gray = np.where(box, np.float32(self.model.texture_level), gray)
+        return np.where(rays.disk, gray, np.float32(OUTSIDE_DISK_LEVEL)).astype(np.float32)
+
+    def render(self, frame: SimFrame, hits: LaserHits) -> tuple[Image, Image]:
+        """The two images of ``frame``: the world scene at its pose, the laser dots each mirror
+        sees (:func:`omnid.sim.render.laser_image`: the spot model; :func:`~omnid.sim.render.hits_flux`:
+        the beams' power and, with ``spots.shading``, the surfaces' shading) scaled by the frame's lit share, and sensor noise (read noise plus
+        shot noise, ``RenderOptions.noise_sigma`` / ``shot_noise_gain``), rounded and clipped."""
+        rng = np.random.default_rng(frame.seed)
+        opts = self.options
+        out: list[Image] = []
+        flux_all = hits_flux(hits, self.rig, opts.spots) * frame.lit  # (N, 2)
+        for i, (cam, vis) in enumerate(
+            ((self.rig.cam1, hits.visible1), (self.rig.cam2, hits.visible2))
+        ):
+            signal = self.scene(i, frame.pose, frame.world)
+            if frame.lit > 0 and np.any(vis):
+                xyz = hits.xyz[vis]
+                signal += laser_image(cam, cam.project(xyz), opts.spots, rng, flux_all[vis, i])
+            noise = np.empty(signal.shape, dtype=np.float32)
+            cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
+            cv2.randn(noise, 0.0, 1.0)  # type: ignore[call-overload]
+            if opts.shot_noise_gain > 0:
+                var = opts.noise_sigma**2 + opts.shot_noise_gain * np.maximum(signal, 0.0)
+                noise *= np.sqrt(var).astype(np.float32)
+            else:
+                noise *= np.float32(opts.noise_sigma)
+            signal += noise
+            out.append(np.asarray(cv2.convertScaleAbs(np.maximum(signal, 0.0)), dtype=np.uint8))
+        return out[0], out[1]

@@ -1,0 +1,113 @@
+"""The installer's captures, simulated: the empty floor plus ``--extra`` captures (SPEC §6).
+
+``omnid calibrate`` learns the laser from what the installer captures: the empty floor, and
+something standing in view — here a box 0.8–1.1 m ahead and a wall 1.3 m ahead, each its own
+capture. :func:`installation_captures` renders them for a rig and a laser;
+:func:`calibrate_installed` runs calibration on them (what the simulator, the experiments and
+the demos install with). The simulator never hands the true rig or laser to perception.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from omnid.core.geometry import StereoRig
+from omnid.core.types import StereoCapture
+from omnid.sim.laser import LaserProjector
+from omnid.sim.render import RenderOptions, render_camera_pair
+from omnid.sim.world import Box, RigMount, World, cast_laser
+
+#: The installer's extra scenes, rig frame (X ahead, Y right), mm: (x0, x1, y0, y1, height).
+EXTRA_SCENES: dict[str, tuple[float, float, float, float, float]] = {
+    "box": (800.0, 1100.0, -300.0, 300.0, 450.0),
+    "wall": (1300.0, 1330.0, -2500.0, 2500.0, 1500.0),
+}
+
+
+def _world(rect: tuple[float, float, float, float, float], mount: RigMount) -> World:
+    x0, x1, y0, y1, h = rect
+    return World(
+        (Box(x0 + mount.x_offset_mm, x1 + mount.x_offset_mm, -max(y0, y1), -min(y0, y1), h),)
+    )
+
+
+def render_world(
+    rig: StereoRig,
+    laser: Any,
+    world: World,
+    mount: RigMount,
+    seed: int,
+    options: RenderOptions | None = None,
+) -> StereoCapture:
+    """A capture of ``world`` with the chair at the origin; each camera shows what it sees."""
+    hits = cast_laser(world, (0.0, 0.0, 0.0), mount, laser, rig)
+    rng = np.random.default_rng(seed)
+    opts = options or RenderOptions()
+    m1, b1 = render_camera_pair(rig.cam1, rig.cam1.project(hits.xyz[hits.visible1]), opts, rng)
+    m2, b2 = render_camera_pair(rig.cam2, rig.cam2.project(hits.xyz[hits.visible2]), opts, rng)
+    return StereoCapture(m1, b1, m2, b2)
+
+
+def installation_captures(
+    rig: StereoRig,
+    laser: Any = None,
+    mount: RigMount | None = None,
+    seed: int = 0,
+    options: RenderOptions | None = None,
+) -> tuple[StereoCapture, dict[str, StereoCapture]]:
+    """(floor capture, {name: extra capture}) for ``rig`` and ``laser`` (default
+    :class:`~omnid.sim.laser.LaserProjector`), mirrors ``mount.height_mm`` above the floor."""
+    m = mount or RigMount(height_mm=rig.floor_depth_mm)
+    las = laser if laser is not None else LaserProjector()
+    floor = render_world(rig, las, World(), m, seed + 7919, options)
+    extras = {
+        name: render_world(rig, las, _world(rect, m), m, seed + 7920 + n, options)
+        for n, (name, rect) in enumerate(EXTRA_SCENES.items())
+    }
+    return floor, extras
+
+
+def calibrate_installed(
+    rig: StereoRig,
+    laser: Any = None,
+    mount: RigMount | None = None,
+    seed: int = 0,
+    options: RenderOptions | None = None,
+) -> Any:
+    """Calibration from the simulated installer's captures (floor + extras), nothing else."""
+    from omnid.core.calibration import calibrate_from_capture
+
+    floor, extras = installation_captures(rig, laser, mount, seed, options)
+    return calibrate_from_capture(
+        floor, rig.floor_depth_mm, rig.baseline_mm, extras=list(extras.values())
+    )
+
+
+def write_capture(capture: StereoCapture, directory: str | Path, prefix: str = "") -> Path:
+    """Write ``{prefix}mask1.png … {prefix}base2.png`` into ``directory`` (created)."""
+    import cv2
+
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("mask1", "base1", "mask2", "base2"):
+        if not cv2.imwrite(str(out / f"{prefix}{name}.png"), getattr(capture, name)):
+            raise OSError(f"cannot write {out / f'{prefix}{name}.png'}")
+    return out
+
+
+def write_installation(
+    rig: StereoRig,
+    directory: str | Path,
+    laser: Any = None,
+    mount: RigMount | None = None,
+    seed: int = 0,
+    options: RenderOptions | None = None,
+) -> list[Path]:
+    """Write the floor capture as ``floor_*.png`` in ``directory`` and each extra as a folder
+    ``extra_<name>/`` (``omnid calibrate --extra`` takes those); returns the extra folders."""
+    floor, extras = installation_captures(rig, laser, mount, seed, options)
+    out = write_capture(floor, directory, "floor_")
+    return [write_capture(cap, out / f"extra_{name}") for name, cap in extras.items()]
