@@ -124,12 +124,22 @@ def spot_models(
         "median and worst case); recall: the smallest of any image; FP: false dots in all its "
         "images; floor: the model's irreducible error; ms: both cameras, median."
     )
+    print(
+        "   Achievable, for best: 'floor' is the RMS shift of the noise-free centroid of the "
+        "model's own isolated spots (speckle grains on the dot and in its halo; 0 without "
+        "grains), median over the cases; 'no grains' is best on the same cases rendered "
+        "without grains (sensor noise and neighbours only); 'ref' = floor ⊕ no grains per "
+        "case (an estimate of what a detector can reach, not a bound)."
+    )
     head = f"   {'family':10s} {'detector':12s} {'pooled':>7s} {'median':>7s} {'worst':>7s} "
     print(head + f"{'recall':>7s} {'FP':>5s} {'floor':>6s} {'ms':>6s}")
     pooled: dict[str, list[float]] = {n: [] for n in names}
+    every_case: dict[str, list[float]] = {n: [] for n in names}
+    reference: list[float] = []
     for kind in SPOT_KINDS:
         cases = [detection.case(kind, k) for k in range(draws)]
-        floor = float(np.median([detection.spot_floor_px(c.spots, c.rig.cam1, 7) for c in cases]))
+        floors = [detection.spot_floor_px(c.spots, c.rig.cam1, 7) for c in cases]
+        floor = float(np.median(floors))
         results: dict[str, list[list[detection.Score]]] = {}
         for name in names:
             fn = trackpy if name == "trackpy" else detectors[name]
@@ -152,6 +162,7 @@ def spot_models(
             rms = detection.pooled_rms(scores)
             pooled[name].append(rms)
             case_rms = [detection.pooled_rms(c) for c in per_case]
+            every_case[name] += case_rms
             common = ""
             if name != "best" and name != "trackpy":
                 # best on the very dots this detector found: like with like
@@ -167,10 +178,45 @@ def spot_models(
                 f"{sum(s.false_dots for s in scores):5d} {floor:6.3f} "
                 f"{statistics.median(times):6.1f}{common}"
             )
+        clean = [
+            no_grains_rms(cs, detectors["best"], rms)
+            for cs, rms in zip(
+                cases, (detection.pooled_rms(c) for c in results["best"]), strict=True
+            )
+        ]
+        ref = [float(np.hypot(f, g)) for f, g in zip(floors, clean, strict=True)]
+        reference += ref
+        print(
+            f"   {kind:10s} {'  no grains':12s} {'':>7s} {np.nanmedian(clean):7.3f} {np.nanmax(clean):7.3f}   ref: median case "
+            f"{np.nanmedian(ref):.3f}, worst {np.nanmax(ref):.3f}"
+        )
     print("   over the families (pooled RMS per family):")
     for name, values in pooled.items():
         v = np.asarray(values)
         print(f"     {name:12s} median {np.nanmedian(v):.3f} px, worst {np.nanmax(v):.3f} px")
+    print("   over every case (one spot model each): median, worst decile (90th pct), worst")
+    for name, values in [*every_case.items(), ("ref (best)", reference)]:
+        v = np.asarray(values)
+        print(
+            f"     {name:12s} median {np.nanmedian(v):.3f} px, worst decile "
+            f"{np.nanpercentile(v, 90):.3f} px, worst {np.nanmax(v):.3f} px ({len(v)} cases)"
+        )
+
+
+def no_grains_rms(cs: detection.Case, best: Detector, with_grains_rms: float) -> float:
+    """best's RMS on the case rendered without grains (= ``with_grains_rms`` if it has none)."""
+    if not detection.has_grains(cs.spots):
+        return with_grains_rms
+    clean = detection.case(cs.kind, cs.index, grains=False)  # type: ignore[arg-type]
+    cap = clean.capture
+    found = [best(cap.mask1, cap.base1), best(cap.mask2, cap.base2)]
+    cams = (clean.rig.cam1, clean.rig.cam2)
+    return detection.pooled_rms(
+        [
+            detection.score(f, *clean.truth(k), cam)
+            for k, (f, cam) in enumerate(zip(found, cams, strict=True), 1)
+        ]
+    )
 
 
 def standard_scene(repeats: int, detectors: dict[str, Detector], trackpy: Detector | None) -> None:

@@ -48,6 +48,7 @@ from typing import Literal
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from omnid.config import Settings, require, setting
 from omnid.core import spotfit
@@ -441,8 +442,6 @@ _SPOT_SIGMA_RANGE_PX = (0.8, 3.5)
 _FIT_ALL_FROM_PX = 1.5
 #: ... and a dot with at least this many clipped pixels starts from their middle.
 _CLIPPED_FIT_PX = 8
-#: ... looked for within this of its peak pixel, px.
-_CLIPPED_HALF_PX = 6
 #: A neighbour whose light moves a filtered maximum by less than this is left alone, px.
 _COUPLING_PX = 0.01
 #: Fixed-point iterations of the neighbours' pull (:func:`_neighbour_pull`).
@@ -701,9 +700,16 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
     # few per cent of the matched filter's efficiency for spots up to 1.5 px; larger spots get
     # their own (candidates stay those of the 1 px smoothing, which keeps close spots apart).
     smooth_px = 1.0
+    top_rows, top_cols = rows, cols
     if sigma > _MATCHED_FROM_PX:
         smooth_px = float(min(sigma, _SPOT_SIGMA_RANGE_PX[1]))
         sm = cv2.GaussianBlur(d, (0, 0), smooth_px)
+        # The 1 px smoothing breaks a flat (or stretched flat) top into maxima anywhere on
+        # it; the matched filter has one, at the spot's centre: climb to it.
+        top_rows, top_cols = rows, cols
+        rows, cols = _climb(sm, rows, cols, math.ceil(2.0 * smooth_px))
+        moved = (rows != top_rows) | (cols != top_cols)
+        r, c = np.where(moved, rows, r), np.where(moved, cols, c)
         rm, cm, _, _, ok = _log_quadratic(sm, rows, cols)
         r, c = np.where(ok, rm, r), np.where(ok, cm, c)  # else keep the 1 px filter's
     filtered_var = sigma * sigma + smooth_px * smooth_px + 1.0 / 12.0
@@ -720,22 +726,27 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
         c[~fit] -= pull_c[~fit]
     if saturated is not None and clipped.any() and sigma > _FIT_ALL_FROM_PX:
         k = np.flatnonzero(clipped)
-        rk, ck, area = _clipped_middle(saturated, rows[k], cols[k], _CLIPPED_HALF_PX)
-        wide = area >= _CLIPPED_FIT_PX
+        rk, ck, area = _clipped_tops(saturated, top_rows, top_cols, k)
+        # (a top 2.5 px or more from the filtered maximum is two tops run together, or
+        # cut: the maximum stays the start)
+        wide = (area >= _CLIPPED_FIT_PX) & (np.hypot(rk - r[k], ck - c[k]) <= 2.5)
         r[k[wide]], c[k[wide]] = rk[wide], ck[wide]
     if fit.any():
         k = np.flatnonzero(fit)
         peak = centre[k] * spread2 / (sigma * sigma)  # the spot's own peak from the smoothed
         # Fitted on the subtracted image: near large, dense spots the local background
         # (a min filter) holds their light; each fit has its own plane for what is left.
-        fr, fc, _, _ = spotfit.fit_spots(
+        fr, fc, _, fs = spotfit.fit_spots(
             sub, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k])
         )
-        moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5  # a fit that wandered off keeps its start
+        # A fit that wandered off, or whose size ran to its bound (no spot of the image's
+        # size there: a neighbour's light or a shape the Gaussian does not fit), keeps its start.
+        moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5
+        moved &= fs < 0.999 * spotfit.window_half_px(sigma) / 2.0
         r[k[moved]], c[k[moved]] = fr[moved], fc[moved]
     if cut.any():
         k = np.flatnonzero(cut)
-        r[k], c[k] = _refine(d, rows[k], cols[k])
+        r[k], c[k] = _refine(d, top_rows[k], top_cols[k])
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
 
 
@@ -786,27 +797,25 @@ def _take(
     return rows[ok], cols[ok], centre[ok], r[ok], c[ok], clipped[ok]
 
 
-def _clipped_middle(
+def _clipped_tops(
     saturated: NDArray[np.bool_],
     rows: NDArray[np.intp],
     cols: NDArray[np.intp],
-    half_px: int,
+    k: NDArray[np.intp],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
-    """The centroid (row, col) of the clipped pixels within ``half_px`` of each clipped dot's
-    peak pixel (a clipped top is point-symmetric about the dot's centre, as its clipped pixels
-    are), and how many there are. A dot whose clipped pixels reach its window's edge (a top
-    wider than the window, or a neighbour's) gets count 0."""
-    k = 2 * half_px + 1
-    pad = np.pad(saturated, half_px)
-    win = np.lib.stride_tricks.sliding_window_view(pad, (k, k))[rows, cols]  # (n, k, k)
-    count = win.sum(axis=(1, 2))
-    off = np.arange(-half_px, half_px + 1, dtype=np.float64)
-    safe = np.maximum(count, 1)
-    r = rows + (win.sum(axis=2) @ off) / safe
-    c = cols + (win.sum(axis=1) @ off) / safe
-    edge = win[:, 0, :].any(axis=1) | win[:, -1, :].any(axis=1)
-    edge |= win[:, :, 0].any(axis=1) | win[:, :, -1].any(axis=1)
-    return r, c, np.where(edge, 0, count)
+    """The centroid (row, col) of the clipped top (the 8-connected region of clipped pixels)
+    next to the peak pixel of each dot ``k`` of all the peaks ``rows``, ``cols``, and its
+    area: a clipped top is point-symmetric about the dot's centre, as the spot is. A region
+    next to no peak of ``k`` or next to two peaks (two dots' tops run together) gets area 0."""
+    _, labels, stats, cents = cv2.connectedComponentsWithStats(
+        saturated.view(np.uint8), connectivity=8, ltype=cv2.CV_32S
+    )
+    near = np.lib.stride_tricks.sliding_window_view(np.pad(labels, 1), (3, 3))
+    lab = near[rows, cols].reshape(len(rows), 9).max(axis=1)
+    shared = np.bincount(lab, minlength=len(stats)) > 1
+    mine = lab[k]
+    area = np.where((mine > 0) & ~shared[mine], stats[mine, cv2.CC_STAT_AREA], 0)
+    return cents[mine, 1].astype(np.float64), cents[mine, 0].astype(np.float64), area
 
 
 def _one_spot(
@@ -832,6 +841,41 @@ def _one_spot(
         low = np.minimum(low, _bilinear(sm, r[i] + t * (r[j] - r[i]), c[i] + t * (c[j] - c[i])))
     keep[i[low >= (1.0 - _SADDLE_DEPTH) * top[i]]] = False
     return keep
+
+
+def _climb(
+    f: NDArray, rows: NDArray[np.intp], cols: NDArray[np.intp], steps: int
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Each peak pixel moved uphill on ``f`` (to the largest of its 3x3 neighbours, at most
+    ``steps`` times, staying ≥ 1 px inside) to the local maximum of ``f`` it belongs to.
+
+    A climb counts only if it ends on a maximum of ``f`` nearer to its own peak than to any
+    other peak (in its Voronoi cell): one that heads for another dot's maximum — ``f``
+    blurs close dots into one — or does not arrive stays where it was."""
+    h, w = f.shape
+    r, c = rows.copy(), cols.copy()
+    win = np.lib.stride_tricks.sliding_window_view(f, (3, 3))
+    live = np.arange(len(r))
+    for _ in range(steps):
+        best = win[r[live] - 1, c[live] - 1].reshape(len(live), 9).argmax(axis=1)
+        moving = best != 4
+        live = live[moving]
+        if len(live) == 0:
+            break
+        dr, dc = np.divmod(best[moving], 3)
+        r[live] = np.clip(r[live] + dr - 1, 1, h - 2)
+        c[live] = np.clip(c[live] + dc - 1, 1, w - 2)
+    moved = np.flatnonzero((r != rows) | (c != cols))
+    if len(moved) == 0:
+        return r, c
+    back = np.zeros(len(r), dtype=bool)
+    back[live] = True  # still climbing
+    if len(rows) > 1:
+        tree = cKDTree(np.column_stack([rows, cols]).astype(np.float64))
+        _, own = tree.query(np.column_stack([r[moved], c[moved]]).astype(np.float64))
+        back[moved[own != moved]] = True
+    r[back], c[back] = rows[back], cols[back]
+    return r, c
 
 
 def _bilinear(img: NDArray, r: NDArray, c: NDArray) -> NDArray:
@@ -949,10 +993,11 @@ def _local_maxima(
     peaks = sm >= cv2.dilate(sm, np.ones((3, 3), np.uint8))
     peaks &= sm > threshold
     m = margin_px
-    peaks[: max(m - r0, 0), :] = False
-    peaks[h - max(m - (shape[0] - r1), 0) :, :] = False
-    peaks[:, : max(m - c0, 0)] = False
-    peaks[:, w - max(m - (shape[1] - c1), 0) :] = False
+    # at least 1 px inside ``sm`` too: the sub-pixel fit reads each peak's 3x3 neighbourhood
+    peaks[: max(m - r0, 1), :] = False
+    peaks[h - max(m - (shape[0] - r1), 1) :, :] = False
+    peaks[:, : max(m - c0, 1)] = False
+    peaks[:, w - max(m - (shape[1] - c1), 1) :] = False
     flat = np.flatnonzero(peaks)  # (much faster than np.nonzero on a 2-D mask)
     rows, cols = np.divmod(flat, w)
     return rows, cols

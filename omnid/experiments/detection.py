@@ -82,13 +82,27 @@ def isolated(truth: NDArray[np.float64], spots: SpotModel) -> NDArray[np.bool_]:
     return np.asarray(d.min(axis=1) >= blend)
 
 
-def case(kind: SpotKind, index: int) -> Case:
+def without_grains(spots: SpotModel) -> SpotModel:
+    """The same spot model without its random parts (speckle grains on the dots and in their
+    halos): every spot point-symmetric about its projected centre."""
+    return replace(spots, speckle_contrast=0.0, halo_speckle=0.0)
+
+
+def has_grains(spots: SpotModel) -> bool:
+    """Whether the model's spots carry speckle grains (on the dot or in a halo)."""
+    return spots.speckle_contrast > 0 or (spots.halo_fraction > 0 and spots.halo_speckle > 0)
+
+
+def case(kind: SpotKind, index: int, grains: bool = True) -> Case:
     """The ``index``-th case of spot family ``kind`` (deterministic: the seed is derived from
-    both, with one stream per drawn thing)."""
+    both, with one stream per drawn thing); ``grains=False``: the same rig, laser, scene and
+    spot model :func:`without_grains` (the sensor's noise is another draw)."""
     seed = 1000 * SPOT_KINDS.index(kind) + index
     rig = random_rig(stream(seed, "rig"))
     laser = random_laser(stream(seed, "laser"))
     spots = random_spots(stream(seed, "spots"), kind)
+    if not grains:
+        spots = without_grains(spots)
     scene = get_scene(CASE_SCENES[index % len(CASE_SCENES)])
     hits = cast_laser(scene.world, scene.pose, scene.mount, laser, rig)
     capture = render_hits(rig, hits, seed, RenderOptions.realistic(spots=spots))

@@ -83,7 +83,7 @@ SPOT_MODEL_RATES = {
     "saturated": (0.08, 0.09, 0.97, 0.005),  # 0.059, 0.069
     "rim": (0.075, 0.085, 0.96, 0.005),  # 0.057, 0.066
     "speckle": (0.11, 0.17, 0.96, 0.005),  # 0.085, 0.129 (floor ≈ 0.045)
-    "mixed": (0.17, 0.28, 0.90, 0.03),  # 0.128, 0.217 (stretched flat tops: 2 % off by > 1.5 px)
+    "mixed": (0.17, 0.28, 0.92, 0.01),  # 0.128, 0.193
 }
 
 
@@ -92,15 +92,22 @@ def test_centres_recall_and_false_dots_over_the_spot_models(kind):
     from omnid.experiments import detection
 
     per_case, recalls, false_dots, dots = [], [], 0, 0
+    off, lone = 0, 0  # lone dots whose nearest detection is 1–3 px away: a wrong centre
     for k in range(4):
         cs = detection.case(kind, k)  # type: ignore[arg-type]
         cap = cs.capture
-        scores = [
-            detection.score(detect_dots(m, b), *cs.truth(i), cam)
-            for i, (m, b, cam) in enumerate(
-                ((cap.mask1, cap.base1, cs.rig.cam1), (cap.mask2, cap.base2, cs.rig.cam2)), 1
-            )
-        ]
+        scores = []
+        for i, (m, b, cam) in enumerate(
+            ((cap.mask1, cap.base1, cs.rig.cam1), (cap.mask2, cap.base2, cs.rig.cam2)), 1
+        ):
+            found = detect_dots(m, b)
+            truth, iso = cs.truth(i)
+            scores.append(detection.score(found, truth, iso, cam))
+            f = found[cam.in_disk(found[:, :2], detection.EDGE_MARGIN_PX)]
+            d = np.hypot(f[:, None, 0] - truth[None, :, 0], f[:, None, 1] - truth[None, :, 1])
+            nearest = d.min(axis=0)
+            off += int(((nearest > 1.0) & (nearest <= 3.0) & iso).sum())
+            lone += int(iso.sum())
         per_case.append(detection.pooled_rms(scores))
         recalls += [sc.recall for sc in scores]
         false_dots += sum(sc.false_dots for sc in scores)
@@ -110,6 +117,9 @@ def test_centres_recall_and_false_dots_over_the_spot_models(kind):
     assert max(per_case) <= worst
     assert min(recalls) >= min_recall
     assert false_dots <= fp_rate * dots
+    # Stretched flat tops were anchored on a shoulder (mixed: 2.1 % of lone dots 1–3 px off
+    # on these cases, 37 dots; now 0.35 %).
+    assert off <= 0.006 * lone
 
 
 @pytest.mark.parametrize(

@@ -245,3 +245,22 @@ def test_a_head_tilted_when_the_daemon_starts_drives_only_after_a_rest():
     r.cycles(0.1)
     r.head = FORWARD
     assert moving(r.cycles(0.6)[-1])
+
+
+def test_the_neutral_pose_calibration_counts_as_the_head_seen_at_rest():
+    d = OmnidConfig()
+    cfg = replace(
+        d,
+        rider=RiderSettings(
+            tilt=TiltSettings(dwell_s=0.1, neutral_calibration_s=0.2),
+            joystick=JoystickSettings(enabled=False),
+        ),
+    )
+    m = RecordingMap(cfg.freespace.grid)
+    m.states[:] = 1
+    r = Run(ControlCore(cfg, world_map=m))
+    r.head = NEUTRAL
+    r.cycles(0.22)  # the calibration's last reading; the next one is already tilted
+    assert r.core.mux.tilt.calibrated
+    r.head = FORWARD
+    assert moving(r.cycles(0.6)[-1])
