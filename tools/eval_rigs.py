@@ -8,6 +8,8 @@ the median and the worst decile over rigs, the pooled rates, and how calibration
     python tools/eval_rigs.py --floor-only     # calibrate on the floor capture alone
     python tools/eval_rigs.py --old-root /path/to/older/checkout   # score an older pipeline
                                                # (same draws; it calibrates on the floor only)
+    python tools/eval_rigs.py --approach       # phantoms driving up to a passage and a wall:
+                                               # 30 rigs x 2 scenes x 65 poses (25 mm apart)
 """
 
 from __future__ import annotations
@@ -46,6 +48,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--old-root", default=None, help="score the omnid found in this checkout")
     ap.add_argument("--seed", type=int, default=0, help="draws the rigs (0)")
     ap.add_argument("--json", action="store_true", help="also print the scores as JSON")
+    ap.add_argument(
+        "--approach",
+        action="store_true",
+        help="closed-loop-like sweep: phantom points per 1000 clouds approaching a passage/wall",
+    )
+    ap.add_argument("--step-mm", type=float, default=25.0, help="--approach: pose step (25 mm)")
     args = ap.parse_args(argv)
     import cv2
 
@@ -56,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     n_rigs = 10 if args.quick else args.rigs
     seeds = list(range(1 if args.quick else args.seeds))
     scenes = args.scenes.split(",") if args.scenes else list(ex.SCENE_CLASSES)
+    if args.approach:
+        return _approach(ex, n_rigs, args)
     scores = []
     refused: list[str] = []
     src_err = []
@@ -104,6 +114,42 @@ def main(argv: list[str] | None = None) -> int:
         print("refused:", line)
     if args.json:
         print(json.dumps([{**vars(s), "err_sum": list(s.err_sum)} for s in scores]))
+    return 0
+
+
+def _approach(ex, n_rigs: int, args: argparse.Namespace) -> int:
+    """The approach sweep (``omnid.experiments.rigs.evaluate_approach``): per rig and in sum."""
+    import omnid
+
+    t_all = time.perf_counter()
+    scores = []
+    print(f"omnid from {Path(omnid.__file__).resolve().parent.parent}")
+    print("| rig | kind | clouds | points | wrong pairs | phantom points | rows | worst cloud (at mm) |")
+    print("|---:|---|---:|---:|---:|---:|---:|---|")
+    for r in range(n_rigs):
+        case = ex.rig_case(r, args.seed)
+        try:
+            calib = ex.calibrate_case(case, args.seed, args.floor_only)
+        except Exception as exc:
+            print(f"| {r} | {case.kind} | refused: {type(exc).__name__}: {exc} |")
+            continue
+        sc = ex.evaluate_approach(case, calib, args.seed, step_mm=args.step_mm)
+        scores.append(sc)
+        print(
+            f"| {r} | {case.kind} | {sc.clouds} | {sc.points} | {sc.wrong} | {sc.phantom_points} "
+            f"| {sc.phantom_rows} | {sc.worst_cloud} ({sc.worst_front_mm:.0f}) |",
+            flush=True,
+        )
+    summ = ex.summarise_phantoms(scores)
+    ms = [m for s in scores for m in s.ms]
+    print(
+        f"{len(scores)} rigs, {summ['clouds']:.0f} clouds ({time.perf_counter() - t_all:.0f} s): "
+        f"phantom points per 1000 clouds median {summ['median_per_1000']:.1f}, worst decile "
+        f"{summ['worst_decile_per_1000']:.1f}, pooled {summ['pooled_per_1000']:.1f}; clouds with "
+        f"a phantom row (>= {ex.PHANTOM_ROW_POINTS} points) {summ['rows']:.0f}; wrong pairs "
+        f"{100 * summ['wrong_share']:.3f} % of points; perceive median "
+        f"{sorted(ms)[len(ms) // 2] if ms else float('nan'):.1f} ms"
+    )
     return 0
 
 

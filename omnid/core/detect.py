@@ -1009,10 +1009,11 @@ def _local_maxima(
     peaks = sm >= cv2.dilate(sm, np.ones((3, 3), np.uint8))
     peaks &= sm > threshold
     m = margin_px
-    peaks[: max(m - r0, 0), :] = False
-    peaks[h - max(m - (shape[0] - r1), 0) :, :] = False
-    peaks[:, : max(m - c0, 0)] = False
-    peaks[:, w - max(m - (shape[1] - c1), 0) :] = False
+    # at least 1 px inside ``sm`` too: the sub-pixel fit reads each peak's 3x3 neighbourhood
+    peaks[: max(m - r0, 1), :] = False
+    peaks[h - max(m - (shape[0] - r1), 1) :, :] = False
+    peaks[:, : max(m - c0, 1)] = False
+    peaks[:, w - max(m - (shape[1] - c1), 1) :] = False
     flat = np.flatnonzero(peaks)  # (much faster than np.nonzero on a 2-D mask)
     rows, cols = np.divmod(flat, w)
     return rows, cols

@@ -23,7 +23,7 @@ them. An empty input gives an empty (0, 4) result.
     m(u) = α_k + β_k·u with m = (x1, y1, x2, y2) the ideal offsets. A *candidate* is a triple
     (camera-1 dot a, camera-2 dot b, beam k):
 
-    1. stereo pairs (a, b) whose rays can meet (rows agree; a depth between ``min_depth_mm``
+    1. stereo pairs (a, b) whose rays can meet (rows agree; a depth between ``near_depth_mm``
        and ``dropoff_depth_mm`` under the floor) — no laser needed;
     2. the beams such a point could lie on: the pair's point projected from the source onto the
        floor lands near beam k's floor point (within ``gate_sigma`` of its uncertainty);
@@ -86,7 +86,13 @@ __all__ = [
 class MatchSettings:
     """The matchers' few parameters (px, mm, probabilities), each with where its value comes from."""
 
-    min_depth_mm: float = 250.0  # highest obstacle top considered: this far below the mirrors
+    min_depth_mm: float = 250.0  # thesis: highest obstacle top considered (below the mirrors)
+    # best: the nearest a dot can be, below the mirrors (their housing's underside): every
+    # surface the cameras can see is inside the depth prior, so a tall thing close ahead
+    # (a wall 400 mm away shows dots 200 mm below the mirrors) is read as itself — with 250
+    # its dots had no true reading and paired with other dots into phantoms behind it
+    # (tools/eval_rigs.py --approach)
+    near_depth_mm: float = 100.0
     dropoff_depth_mm: float = 400.0  # deepest drop-off considered: this far below the floor
     # best: a triple whose residual exceeds this many σ per degree of freedom is no candidate
     # (χ² < 3·gate²: 5σ leaves a true triple out with probability ~1e-12 under the noise model)
@@ -108,6 +114,7 @@ class MatchSettings:
 
     def __post_init__(self) -> None:
         require(self.min_depth_mm > 0, "min_depth_mm", "must be positive")
+        require(self.near_depth_mm > 0, "near_depth_mm", "must be positive")
         require(self.dropoff_depth_mm >= 0, "dropoff_depth_mm", "must not be negative")
         require(self.gate_sigma > 1, "gate_sigma", "must exceed 1")
         require(self.row_slack_px >= 0, "row_slack_px", "must not be negative")
@@ -488,7 +495,7 @@ def match_triples(
         d1,
         d2,
         s.gate_sigma * math.sqrt(2.0) * sig + s.row_slack_px,
-        s.min_depth_mm,
+        s.near_depth_mm,
         H + s.dropoff_depth_mm,
     )
     if len(i) == 0:
@@ -517,7 +524,7 @@ def match_triples(
     al, be = tr.alpha[k], tr.beta[k]
     bb = np.sum(be * be, axis=1)
     u_lo = 1.0 / (H + s.dropoff_depth_mm)
-    u_hi = 1.0 / max(s.min_depth_mm, o[2] + 1.0)
+    u_hi = 1.0 / max(s.near_depth_mm, o[2] + 1.0)
     u = np.clip(np.sum((mm - al) * be, axis=1) / bb, u_lo, u_hi)
     r = mm - al - be * u[:, None]
     sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)

@@ -284,7 +284,7 @@ def _match_unknown_source(
     f = 0.5 * (rig.cam1.f_over_k_px + rig.cam2.f_over_k_px)
     sigma_z = H * H * math.sqrt(2.0) * sigma_px / (f * rig.baseline_mm)
     band = max(4.0 * sigma_z, 10.0)
-    floor_ms = replace(s.matching, min_depth_mm=H - band, dropoff_depth_mm=band)
+    floor_ms = replace(s.matching, near_depth_mm=H - band, dropoff_depth_mm=band)
     m = match_triples(rig, laser, sigma_px, d1, d2, floor_ms)
     rest1 = np.setdiff1d(np.arange(len(d1)), m.i1)
     rest2 = np.setdiff1d(np.arange(len(d2)), m.i2)

@@ -63,6 +63,8 @@ class Arming:
     def observe(self, mux: RiderMux, now_s: float) -> None:
         """Every cycle, whatever else happens: note the sources seen at rest (start-up rule)."""
         if len(self.at_rest_seen) < len(_CONTINUOUS):
+            if mux.tilt.calibrated:  # the neutral-pose calibration held the head still
+                self.at_rest_seen.add("tilt")
             for name in _CONTINUOUS:
                 if name not in self.at_rest_seen and mux.released(name, now_s, -math.inf):
                     self.at_rest_seen.add(name)

@@ -190,6 +190,7 @@ class TiltInterpreter:
         self._pending_since_s = 0.0
         self.last_timestamp_s: float | None = None
         self.calibrating = settings.neutral_calibration_s > 0
+        self.calibrated = False  # a neutral pose was measured: the head was held still
         self.calibrations_failed = 0
         self._cal: list[tuple[float, float, float]] = []  # (t_s, roll, pitch) while calibrating
 
@@ -223,6 +224,7 @@ class TiltInterpreter:
             return
         self.set_neutral(r0, p0)
         self.calibrating = False
+        self.calibrated = True
         log.info("tilt neutral pose calibrated: roll %.2f°, pitch %.2f°", r0, p0)
 
     @property

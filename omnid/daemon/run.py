@@ -728,6 +728,7 @@ class Daemon:
         elif old.config.rider.tilt.neutral_calibration_s > 0 and not old.mux.tilt.calibrating:
             # keep the neutral pose measured at start across a reload
             new.mux.tilt.calibrating = False
+            new.mux.tilt.calibrated = old.mux.tilt.calibrated
             new.mux.tilt.set_neutral(old.mux.tilt.roll_offset_deg, old.mux.tilt.pitch_offset_deg)
         if self.recording is not None:
             self.core = self.recording.wrap(new)

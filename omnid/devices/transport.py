@@ -90,7 +90,11 @@ class Transport:
 
     # -- public API ----------------------------------------------------------------------
     async def read_some(self, max_bytes: int, timeout_s: float) -> bytes:
-        """Up to ``max_bytes`` bytes as soon as any are available; b"" if none within ``timeout_s``."""
+        """Up to ``max_bytes`` bytes as soon as any are available; b"" if none within ``timeout_s``.
+
+        Bytes that arrived in time but are noticed only when the timeout fires (the event loop
+        ran the timeout before the readable callback) are returned, not lost to a "timeout".
+        """
         self._check_open()
         data = self._read_available(max_bytes)
         if data:
@@ -104,7 +108,7 @@ class Transport:
                     if data:
                         return data
         except TimeoutError:
-            return b""
+            return self._read_available(max_bytes) if not self._closed else b""
 
     async def read_exactly(self, n: int, timeout_s: float) -> bytes:
         """Exactly ``n`` bytes within ``timeout_s`` in total, else :class:`DeviceTimeout`."""

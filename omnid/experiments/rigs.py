@@ -415,3 +415,128 @@ def format_summary(scores: Sequence[Score]) -> str:
         label = f"**{key}**" if key == "all" else key
         lines.append(f"| {label} | {n_rigs[key]} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Closed-loop-like sweep: many poses driving up to a passage or a wall (phantom rate)
+# --------------------------------------------------------------------------------------------
+
+#: Scenes of the approach sweep: a partition across the way with a gap (the scenario suite's
+#: "passage wider than the chair", 1000 mm tall) and a wall across the way, both high enough
+#: to fill the laser's field near them.
+APPROACH_SCENES: tuple[str, ...] = ("passage", "wall")
+
+
+def approach_world(scene: str, mount: RigMount, front_mm: float, rng: np.random.Generator) -> World:
+    """The sweep's scene with its near face ``front_mm`` ahead of the rig (a random gap width
+    1100–1500 mm and a lateral offset of the gap of ±150 mm for ``passage``)."""
+    if scene == "passage":
+        half = 0.5 * float(rng.uniform(1100.0, 1500.0))
+        dy = float(rng.uniform(-150.0, 150.0))
+        return World(
+            (
+                _box(mount, front_mm, front_mm + 100.0, -2000.0, dy - half, 1000.0),
+                _box(mount, front_mm, front_mm + 100.0, dy + half, 2000.0, 1000.0),
+            )
+        )
+    if scene == "wall":
+        return World((_box(mount, front_mm, front_mm + 100.0, -2000.0, 2000.0, 1000.0),))
+    raise ValueError(f"unknown approach scene {scene!r} (known: {', '.join(APPROACH_SCENES)})")
+
+
+@dataclass
+class PhantomScore:
+    """Wrong pairs over the clouds of one rig's approaches (a *phantom point* is a reported
+    point from a wrong pair that is not floor: something the map keeps and the chair stops
+    for; a *phantom row* is a cloud with at least :data:`PHANTOM_ROW_POINTS` of them)."""
+
+    rig: int
+    kind: str
+    clouds: int = 0
+    points: int = 0
+    wrong: int = 0
+    phantom_points: int = 0
+    phantom_rows: int = 0
+    worst_cloud: int = 0
+    worst_front_mm: float = math.nan
+    ms: list[float] = field(default_factory=list)
+
+    def per_1000(self) -> float:
+        return 1000.0 * self.phantom_points / self.clouds if self.clouds else math.nan
+
+
+#: A cloud with this many phantom points holds a row of them (a whole row paired wrong).
+PHANTOM_ROW_POINTS = 5
+
+
+def phantom_points(case: RigCase, hits: LaserHits, cloud: Any) -> tuple[int, int]:
+    """(wrong pairs, wrong pairs not classified floor) of one cloud against the truth."""
+    vis = hits.visible
+    truth_px = case.rig.project(hits.xyz[vis])
+    t = _truth_index(cloud.pixels, truth_px)
+    wrong = t < 0
+    # a pair matched to a dot another pair also claims is wrong too (one of the two)
+    ok_t = t[~wrong]
+    _, first = np.unique(ok_t, return_index=True)
+    dup = np.ones(len(ok_t), dtype=bool)
+    dup[first] = False
+    wrong_idx = np.concatenate([np.flatnonzero(wrong), np.flatnonzero(~wrong)[dup]])
+    n_bad = int(np.sum(cloud.classes[wrong_idx] != PointClass.FLOOR))
+    return len(wrong_idx), n_bad
+
+
+def approach_fronts_mm(step_mm: float = 25.0) -> NDArray[np.float64]:
+    """The near faces' distances ahead of the rig of one approach: 2000 mm down to 400 mm."""
+    return np.arange(2000.0, 400.0 - 1e-9, -step_mm)
+
+
+def evaluate_approach(
+    case: RigCase,
+    calib: Any,
+    seed: int = 0,
+    scenes: Sequence[str] = APPROACH_SCENES,
+    step_mm: float = 25.0,
+    perceive_fn: Callable[..., object] | None = None,
+) -> PhantomScore:
+    """Perceive the approach of each scene at every ``step_mm`` (each capture its own noise
+    draw, as the stream's successive clouds are) and count phantom points."""
+    from omnid.core.pipeline import perceive
+
+    fn = perceive_fn or perceive
+    sc = PhantomScore(case.index, case.kind)
+    for k, scene in enumerate(scenes):
+        rng = np.random.default_rng([seed, case.index, 31, k])
+        world_rng_state = rng.bit_generator.state
+        for n, front in enumerate(approach_fronts_mm(step_mm)):
+            rng.bit_generator.state = world_rng_state  # the same scene all the way
+            world = approach_world(scene, case.mount, float(front), rng)
+            hits, cap = capture(case, world, seed * 100000 + case.index * 1000 + 500 * k + n)
+            t0 = time.perf_counter()
+            cloud: Any = fn(cap, calib, "best")
+            sc.ms.append(1e3 * (time.perf_counter() - t0))
+            wrong, bad = phantom_points(case, hits, cloud)
+            sc.clouds += 1
+            sc.points += len(cloud)
+            sc.wrong += wrong
+            sc.phantom_points += bad
+            sc.phantom_rows += int(bad >= PHANTOM_ROW_POINTS)
+            if bad > sc.worst_cloud:
+                sc.worst_cloud, sc.worst_front_mm = bad, float(front)
+    return sc
+
+
+def summarise_phantoms(scores: Sequence[PhantomScore]) -> dict[str, float]:
+    """Phantom points per 1000 clouds: median and worst decile over rigs, and pooled counts."""
+    per = np.array([s.per_1000() for s in scores if s.clouds], dtype=np.float64)
+    clouds = sum(s.clouds for s in scores)
+    return {
+        "rigs": float(len(per)),
+        "clouds": float(clouds),
+        "median_per_1000": float(np.median(per)) if len(per) else math.nan,
+        "worst_decile_per_1000": float(np.percentile(per, 90)) if len(per) else math.nan,
+        "pooled_per_1000": 1000.0 * sum(s.phantom_points for s in scores) / clouds
+        if clouds
+        else math.nan,
+        "rows": float(sum(s.phantom_rows for s in scores)),
+        "wrong_share": sum(s.wrong for s in scores) / max(sum(s.points for s in scores), 1),
+    }

@@ -190,3 +190,14 @@ def test_floor_only_calibration_reads_the_floor_and_invents_nothing_over_random_
     pooled = ev.pooled(scores)
     assert pooled["wrong"] <= 0.002 and pooled["class"] >= 0.99
     assert ev.summarise(scores)["all"]["wrong"][1] <= 0.005  # worst decile of rigs
+
+
+def test_few_phantoms_driving_up_to_a_passage_or_a_wall_over_random_rigs(installed) -> None:
+    """The closed-loop-like sweep of ``tools/eval_rigs.py --approach`` on a coarse pose grid:
+    a wrong pair that is not floor is rare (a few per 1000 clouds), and no cloud holds a row
+    of them (the stream capture's map would keep it)."""
+    scores = [ev.evaluate_approach(case, calib, 1, step_mm=200.0) for case, calib in installed]
+    summ = ev.summarise_phantoms(scores)
+    assert summ["rigs"] >= 10 and summ["clouds"] >= 160
+    assert summ["rows"] == 0
+    assert summ["pooled_per_1000"] <= 60.0

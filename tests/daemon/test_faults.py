@@ -8,7 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from daemon_helpers import RecordingMap, Status, Tilt, arm
+from daemon_helpers import FreeFloor, Status, Tilt, arm
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -46,8 +46,7 @@ def make_core(**safety) -> ControlCore:
         ),
         safety=replace(d.safety, **safety),
     )
-    m = RecordingMap(cfg.freespace.grid)
-    m.states[:] = 1  # free everywhere
+    m = FreeFloor(cfg.freespace.grid)  # free everywhere, as far as the chair goes
     core = ControlCore(cfg, world_map=m)
     arm(core)
     return core
@@ -200,8 +199,7 @@ def test_rearm_follows_the_source_that_was_driving():
             tilt=TiltSettings(enabled=False), joystick=JoystickSettings(enabled=False)
         ),
     )
-    core = ControlCore(cfg, world_map=RecordingMap(cfg.freespace.grid))
-    core.map.states[:] = 1
+    core = ControlCore(cfg, world_map=FreeFloor(cfg.freespace.grid))
     t = 0.0
     ok = []
     for _ in range(30):
@@ -238,13 +236,31 @@ def test_a_head_tilted_when_the_daemon_starts_drives_only_after_a_rest():
             joystick=JoystickSettings(enabled=False),
         ),
     )
-    m = RecordingMap(cfg.freespace.grid)
-    m.states[:] = 1
+    m = FreeFloor(cfg.freespace.grid)
     r = Run(ControlCore(cfg, world_map=m))  # not armed: the first reading is already tilted
     r.head = FORWARD
     assert not any(moving(c) for c in r.cycles(1.5))
     assert r.core.last_report.demand.reason == "rearm_wait"
     r.head = NEUTRAL
     r.cycles(0.1)
+    r.head = FORWARD
+    assert moving(r.cycles(0.6)[-1])
+
+
+def test_the_neutral_pose_calibration_counts_as_the_head_seen_at_rest():
+    d = OmnidConfig()
+    cfg = replace(
+        d,
+        rider=RiderSettings(
+            tilt=TiltSettings(dwell_s=0.1, neutral_calibration_s=0.2),
+            joystick=JoystickSettings(enabled=False),
+        ),
+    )
+    m = RecordingMap(cfg.freespace.grid)
+    m.states[:] = 1
+    r = Run(ControlCore(cfg, world_map=m))
+    r.head = NEUTRAL
+    r.cycles(0.22)  # the calibration's last reading; the next one is already tilted
+    assert r.core.mux.tilt.calibrated
     r.head = FORWARD
     assert moving(r.cycles(0.6)[-1])
