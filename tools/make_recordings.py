@@ -7,8 +7,9 @@ expects every decision as recorded. When a change to the daemon's decisions is i
 new safety rule, a changed ramp), run this again and commit the new files with the change,
 saying in the commit what the replay reported before (``omnid replay FILE``).
 
-- ``demo_truth.mcap`` — the demo story's first 14 s (head tilt forward through the wide
-  passage, slow zone and approach at the narrow one), truth perception;
+- ``demo_truth.mcap`` — the demo story's first 30 s (head tilt forward: the start-up creep
+  into the band the laser cannot see, through the wide passage, slow zone and approach at the
+  narrow one), truth perception;
 - ``faults_truth.mcap`` — 8 s of driving with the control unit silent from 3 to 3.6 s and the
   tilt sensor unplugged from 5 to 5.5 s (stops, re-arming, fault events);
 - ``pipeline_capture.mcap`` — 3 s of the rendered-camera pipeline with one recorded capture
@@ -63,7 +64,7 @@ def main() -> None:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     logging.getLogger().addHandler(logging.NullHandler())  # warnings go to /log, not stderr
-    record(out, "demo_truth.mcap", 14.0, "truth", 0.0)
+    record(out, "demo_truth.mcap", 30.0, "truth", 0.0)
     record(
         out,
         "faults_truth.mcap",

@@ -30,6 +30,35 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   move. Queries transform their points exactly into the anchor frame.
 - ``grid`` is the map as an :class:`OccupancyGrid` in the current robot frame (x forward, y left,
   origin at the axle midpoint), rebuilt on demand.
+- What is remembered. Everything seen stays until a capture contradicts it, until the chair has
+  travelled ``forget_after_travel_mm`` since the cell was last seen (odometry can no longer keep
+  it in place) or — optionally — after ``forget_after_s``. The chair's own trail is seen too:
+  :meth:`FreeSpaceMap.occupy` marks the unknown cells wholly under the footprint FREE (the
+  chair stands there). Nothing else is free: at start-up the map holds only what the first
+  capture shows and the cells under the chair.
+- Drop-offs need evidence (a phantom must not stop the chair): a drop-off dot counts only with
+  ``dropoff_min_points`` − 1 others within ``dropoff_cluster_mm`` at a depth within
+  ``dropoff_depth_tolerance_mm`` of its own, and a lowered dot whose ray crossed floor level
+  amid this capture's own floor (floor dots all around the crossing, within
+  ``dropoff_cluster_mm``) is a contradiction, not a drop-off: the floor was seen on every side
+  of where the ray is said to have found none. At a real edge the crossings lie beyond the last
+  floor dots, which are all on the near side. A cell becomes DROPOFF
+  only when ``dropoff_confirm_captures`` captures in a row say so; before that it is UNKNOWN
+  (in doubt: not free, not yet a drop-off). Obstacles likewise (``obstacle_confirm_captures``):
+  a phantom of one capture's wrong pairing is doubt, not a wall.
+- Exact obstacle evidence: besides the cells, the map keeps the obstacle dots themselves (anchor
+  frame and height, one per ``point_spacing_mm``, at most ``obstacle_points_max``; per cell those
+  of the latest capture that saw it) for as long as their cell stays OBSTACLE. :meth:`FreeSpaceMap.blocking_evidence` gives the safety layer those points
+  where they exist and the cell centres (with their half-diagonal) elsewhere, transformed
+  exactly into the robot frame — no cell quantisation and no resampling error where the laser
+  saw the thing (a doorway's jambs, a wall beside the chair).
+- Rays carve: a laser ray that reached its dot passed through everything before it. A kept
+  obstacle point within ``carve_tolerance_mm`` of a later capture's ray, well before that ray's
+  dot, was not there (a phantom of a wrong pairing lies exactly on a ray: the lattice's one-row
+  ambiguity puts a whole row on a false plane); it is dropped, and a cell that loses its last
+  point becomes UNKNOWN (the ray says nothing of the floor below it). This reaches where
+  interpolated floor cannot: the band right in front of the footrests, which no floor dot of a
+  standing chair ever lands in.
 """
 
 from __future__ import annotations
@@ -52,6 +81,8 @@ _F_FLOOR, _F_OBSTACLE, _F_DROPOFF, _F_LOW, _F_INSIDE, _F_INSIDE_C = 1, 2, 4, 8, 
 _CLASS_FLAGS = np.array([_F_FLOOR, _F_OBSTACLE, _F_DROPOFF, 0], dtype=np.uint8)
 _CLASS_FLAGS.setflags(write=False)
 _FAR_MM = 1e9  # points farther than this (or not finite) are ignored
+_NO_CLASS = np.uint8(len(_CLASS_FLAGS) - 1)  # a dot that is evidence of nothing (flags 0)
+_TURN_REACH_MM = 1000.0  # a heading error of dθ moves a cell this far away by dθ·this
 _SHIFT = 4  # fractional bits of the fixed-point polygon corners given to cv2.fillPoly
 
 
@@ -70,10 +101,22 @@ class FreeSpaceSettings(Settings):
                            captures in a row say so; a floor dot in the cell clears it at once
     forget_after_s         remembered cells not seen again for this long become UNKNOWN
                            (0: never forget); needs ``now_s`` in :meth:`FreeSpaceMap.update`
+    forget_after_travel_mm remembered cells not seen again while the chair travelled this far
+                           become UNKNOWN (0: never): odometry error grows with travel
+                           (translation + heading change × 1 m), and a remembered wall that
+                           drifted by more than the footprint's margin is not where the map says
     reanchor_distance_mm   travel from the anchor pose before the stored grid is resampled
     neighbours             how dots are joined into triangles: "lattice" (strips between the
                            rows of the laser lattice, found from the dots' ray slopes; clouds
                            without rows fall back to Delaunay) or "delaunay" (always)
+    dropoff_min_points     a drop-off dot counts only with this many (itself included) within
+                           ``dropoff_cluster_mm`` at depths within ``dropoff_depth_tolerance_mm``
+    dropoff_confirm_captures  captures in a row that must call a cell a drop-off before it is one
+    obstacle_confirm_captures  likewise for an obstacle
+    obstacle_points_max    exact obstacle points kept (0: cells only)
+    point_spacing_mm       one kept point per this lattice spacing (the newest)
+    carve_tolerance_mm     a kept obstacle point this close to a later ray, well before the
+                           ray's dot, is dropped (0: no carving)
     """
 
     grid: GridSettings = field(default_factory=GridSettings)
@@ -83,8 +126,24 @@ class FreeSpaceSettings(Settings):
     obstacle_inflation_mm: float = setting(0.0, 0.0, 500.0)
     forget_after_s: float = setting(0.0, 0.0, 3600.0)
     clear_after_contradictions: int = setting(3, 1, 100)
+    # odometry assumed to drift by at most 0.25 % of travel: 50 mm (the margin) after 20 m
+    forget_after_travel_mm: float = setting(20000.0, 0.0, 1.0e6)
     reanchor_distance_mm: float = setting(1000.0, 0.0, 100000.0)
     neighbours: str = "lattice"
+    # a drop-off: 3 dots within 250 mm (two lattice steps at 1.2 m) whose depths agree within
+    # 40 mm (a lower floor is flat; phantoms of a wrong pairing scatter), in 2 captures in a row
+    dropoff_min_points: int = setting(3, 1, 50)
+    dropoff_cluster_mm: float = setting(250.0, 10.0, 2000.0)
+    dropoff_depth_tolerance_mm: float = setting(40.0, 1.0, 1000.0)
+    dropoff_confirm_captures: int = setting(2, 1, 20)
+    # a wrong pairing's phantom rarely survives the next capture (the chair moved, the geometry
+    # that made it is gone); a real thing is seen again and again as the chair approaches
+    obstacle_confirm_captures: int = setting(2, 1, 20)
+    obstacle_points_max: int = setting(20000, 0, 1000000)
+    point_spacing_mm: float = setting(10.0, 1.0, 100.0)
+    # below half the thinnest obstacle worth keeping (a 40 mm post: a ray that close would have
+    # hit it), above the ray's own error (dot noise, the laser a centimetre off the rig origin)
+    carve_tolerance_mm: float = setting(15.0, 0.0, 100.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -139,12 +198,23 @@ class FreeSpaceMap:
         half += self.settings.reanchor_distance_mm + g.resolution_mm
         self._anchor_settings = GridSettings(g.resolution_mm, -half, half, -half, half)
         self._anchor = OccupancyGrid(self._anchor_settings)
-        self._seen_s = np.full(self._anchor.states.shape, -np.inf)
-        self._contradictions: NDArray[np.uint8] = np.zeros(self._anchor.states.shape, np.uint8)
+        shape = self._anchor.states.shape
+        self._seen_s = np.full(shape, -np.inf)
+        self._seen_travel = np.full(shape, -np.inf)  # self.travel_mm when last seen
+        self._contradictions: NDArray[np.uint8] = np.zeros(shape, np.uint8)
+        self._dropoff_seen: NDArray[np.uint8] = np.zeros(shape, np.uint8)  # captures in a row
+        self._obstacle_seen: NDArray[np.uint8] = np.zeros(shape, np.uint8)
+        self._from_points: NDArray[np.uint8] = np.zeros(shape, np.uint8)  # obstacle from dots
+        self._points = np.zeros((0, 3))  # exact obstacle points: anchor x, y, height (mm)
         self._pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  # robot in the anchor frame
         self._now_s = 0.0
+        self.travel_mm = 0.0  # odometry travel so far (translation + |dθ| · 1 m)
+        self.version = 0  # counts changes of the stored cells and points
         self._grid: OccupancyGrid | None = None
         self._strips: _Strips | None = None  # the last capture's lattice strips
+        self._evidence: tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
+        self._evidence = (-1, np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
+        self._occupied: tuple[float, float, float] | None = None  # pose of the last occupy
 
     # -- motion -------------------------------------------------------------------------------
 
@@ -162,6 +232,7 @@ class FreeSpaceMap:
         c, s = math.cos(th), math.sin(th)
         th_new = math.remainder(th + dtheta_rad, 2.0 * math.pi)
         self._pose = (x + c * dx_mm - s * dy_mm, y + s * dx_mm + c * dy_mm, th_new)
+        self.travel_mm += math.hypot(dx_mm, dy_mm) + abs(dtheta_rad) * _TURN_REACH_MM
         self._grid = None
         if math.hypot(self._pose[0], self._pose[1]) > self.settings.reanchor_distance_mm:
             self._reanchor()
@@ -194,34 +265,68 @@ class FreeSpaceMap:
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=-1e300,
         )
-        self._contradictions = np.asarray(
-            cv2.warpAffine(
-                self._contradictions,
+        self._seen_travel = cv2.warpAffine(
+            self._seen_travel,
+            M,
+            (ny, nx),
+            flags=flags,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=-1e300,
+        )
+        for name in ("_contradictions", "_dropoff_seen", "_obstacle_seen", "_from_points"):
+            layer = cv2.warpAffine(
+                getattr(self, name),
                 M,
                 (ny, nx),
                 flags=flags,
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0,
-            ),
-            dtype=np.uint8,
-        )
+            )
+            setattr(self, name, np.asarray(layer, dtype=np.uint8))
+        # the exact points move exactly: p' = R(−θ)·(p − t)
+        x, y, th = self._pose
+        c, sn = math.cos(th), math.sin(th)
+        dx, dy = self._points[:, 0] - x, self._points[:, 1] - y
+        self._points = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy, self._points[:, 2]])
         self._pose = (0.0, 0.0, 0.0)
+        self._occupied = None
+        # The cells were resampled (nearest neighbour, up to half a cell off), the points moved
+        # exactly: an obstacle made by dots is where its points now fall, not where the
+        # resampling put it (a cell the points left would block a doorway by 35 mm).
+        grid = self._anchor
+        pi, pj, inside = grid.cell_index(self._points[:, :2])
+        with_points = np.zeros(grid.states.shape, dtype=np.bool_)
+        with_points[pi[inside], pj[inside]] = True
+        left = (self._from_points > 0) & ~with_points & (grid.states == CellState.OBSTACLE)
+        grid.states[left] = CellState.UNKNOWN
+        grid.states[with_points] = CellState.OBSTACLE
+        self._from_points = with_points.astype(np.uint8)
+        self._prune_points()
+        self.version += 1
 
     # -- observations -------------------------------------------------------------------------
 
     def update(
-        self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s: float | None = None
+        self,
+        cloud: PointCloud,
+        rig_x_offset_mm: float = 0.0,
+        now_s: float | None = None,
+        source_mm: tuple[float, float, float] | None = None,
     ) -> None:
         """Enter one classified cloud (rig frame, SPEC §2) seen from the current pose.
 
         ``rig_x_offset_mm`` is how far the rig origin sits ahead of the axle midpoint; ``now_s``
-        (monotonic, s) stamps the cells this cloud covers, for ``forget_after_s``.
+        (monotonic, s) stamps the cells this cloud covers, for ``forget_after_s``;
+        ``source_mm`` is where the laser was when the frames were taken, in the cloud's rig
+        frame (default the rig origin; a cloud moved by the odometry since its capture has its
+        source moved with it), for carving.
         """
         import cv2
 
         if now_s is not None:
             self._now_s = float(now_s)
         self._grid = None
+        self.version += 1
         st = self.settings
         if len(cloud):
             xy = _to_frame(self._pose, rig_to_robot(cloud.xyz, rig_x_offset_mm))
@@ -230,9 +335,13 @@ class FreeSpaceMap:
             xyz, cls = cloud.xyz, cloud.classes
             if not ok.all():
                 xy, cls, xyz = xy[ok], cls[ok], xyz[ok]
+            H = cloud.floor_depth_mm
+            sigma_z = _depth_sigma(cloud.cov, len(cloud))
+            if not ok.all():
+                sigma_z = sigma_z[ok]
+            cls = self._dropoff_evidence(xy, xyz, cls, H, rig_x_offset_mm, sigma_z)
             # A ray that ended below the floor passed floor level at P·H/Z without meeting any
             # floor there: the floor is missing all along its path from that crossing to the dot.
-            H = cloud.floor_depth_mm
             low = (cls == PointClass.DROPOFF) & (xyz[:, 2] > H)
             crossing = xyz[low] * (H / xyz[low, 2])[:, None]
             xy0 = _to_frame(self._pose, rig_to_robot(crossing, rig_x_offset_mm))
@@ -241,6 +350,10 @@ class FreeSpaceMap:
             # filled once at its dot and once at its crossing), so the strip between the last
             # floor dots and the first crossings reads DROPOFF too; their cells are drop-off dots.
             n_dots = len(xy)
+            if st.carve_tolerance_mm > 0 and len(self._points):
+                self._carve(xy, xyz, H, rig_x_offset_mm, source_mm or (0.0, 0.0, 0.0))
+            is_obstacle = cls == PointClass.OBSTACLE
+            obstacle_xyh = np.column_stack([xy[is_obstacle], H - xyz[is_obstacle, 2]])
             xy = np.vstack([xy, xy0])
             cls = np.concatenate([cls, np.full(len(xy0), PointClass.DROPOFF, np.uint8)])
             obs, direct_free, (r0, c0) = self._observation(xy, cls, cv2, segments, xyz, low, n_dots)
@@ -261,11 +374,327 @@ class FreeSpaceMap:
             self._contradictions[win] = counts
             keep = contradicted & (counts < st.clear_after_contradictions)
             seen &= ~keep
+            # A drop-off or an obstacle only after so many captures in a row: until then the cell
+            # is in doubt (UNKNOWN), and what a cell already held stays.
+            for state, need, counter in (
+                (CellState.DROPOFF, st.dropoff_confirm_captures, self._dropoff_seen),
+                (CellState.OBSTACLE, st.obstacle_confirm_captures, self._obstacle_seen),
+            ):
+                hit = obs == state
+                prior = counter[win].astype(np.int32)
+                confirmed = hit & ((prior + 1 >= need) | (states == state))
+                doubt = hit & ~confirmed
+                obs[doubt] = CellState.UNKNOWN
+                seen &= ~(doubt & held)
+                counter[win] = np.where(
+                    hit, np.minimum(prior + 1, 255), np.where(seen, 0, prior)
+                ).astype(np.uint8)
             states[seen] = obs[seen].astype(np.int8)
             self._seen_s[win][seen] = self._now_s
+            self._seen_travel[win][seen] = self.travel_mm
+            self._add_points(obstacle_xyh)
+        forgot = False
         if st.forget_after_s > 0 and now_s is not None:
             stale = (self._now_s - self._seen_s) > st.forget_after_s
+            forgot = bool(np.any(stale & (self._anchor.states != CellState.UNKNOWN)))
             self._anchor.states[stale] = CellState.UNKNOWN
+        if st.forget_after_travel_mm > 0:
+            far = (self.travel_mm - self._seen_travel) > st.forget_after_travel_mm
+            forgot |= bool(np.any(far & (self._anchor.states != CellState.UNKNOWN)))
+            self._anchor.states[far] = CellState.UNKNOWN
+        if forgot or len(cloud):
+            self._prune_points()
+
+    # -- the chair's trail --------------------------------------------------------------------
+
+    def occupy(self, x0_mm: float, x1_mm: float, y0_mm: float, y1_mm: float) -> int:
+        """The chair stands on the robot-frame rectangle [x0, x1] × [y0, y1] (its footprint):
+        every UNKNOWN cell whose centre lies inside it becomes FREE and counts as seen now (the
+        safety layer tests unseen cells by their centres against the footprint too, so that
+        the chair finds its own trail free when it retraces it). Returns how many cells
+        changed. Cheap to call at every status: it works only after the chair moved a quarter of
+        a cell (or turned by as much at the footprint's far corner) since the last call."""
+        res = self._anchor_settings.resolution_mm
+        reach = max(abs(x0_mm), abs(x1_mm)) + max(abs(y0_mm), abs(y1_mm))
+        last = self._occupied
+        if last is not None:
+            moved = math.hypot(self._pose[0] - last[0], self._pose[1] - last[1])
+            turned = abs(math.remainder(self._pose[2] - last[2], 2.0 * math.pi)) * reach
+            if moved + turned < 0.25 * res:
+                return 0
+        self._occupied = self._pose
+        h = 0.0  # cell centres inside the footprint itself
+        corners = _to_frame(
+            self._pose, np.array([[x0_mm, y0_mm], [x0_mm, y1_mm], [x1_mm, y0_mm], [x1_mm, y1_mm]])
+        )
+        a = self._anchor_settings
+        nx, ny = self._anchor.states.shape
+        i0 = max(int((corners[:, 0].min() - a.x_min_mm) // res), 0)
+        i1 = min(int((corners[:, 0].max() - a.x_min_mm) // res) + 1, nx)
+        j0 = max(int((corners[:, 1].min() - a.y_min_mm) // res), 0)
+        j1 = min(int((corners[:, 1].max() - a.y_min_mm) // res) + 1, ny)
+        if i1 <= i0 or j1 <= j0:
+            return 0
+        xs = a.x_min_mm + (np.arange(i0, i1) + 0.5) * res
+        ys = a.y_min_mm + (np.arange(j0, j1) + 0.5) * res
+        x, y, th = self._pose
+        c, sn = math.cos(th), math.sin(th)
+        dx, dy = xs[:, None] - x, ys[None, :] - y
+        rx, ry = c * dx + sn * dy, -sn * dx + c * dy  # cell centres in the robot frame
+        under = (rx >= x0_mm + h) & (rx <= x1_mm - h) & (ry >= y0_mm + h) & (ry <= y1_mm - h)
+        win = (slice(i0, i1), slice(j0, j1))
+        states = self._anchor.states[win]
+        new = under & (states == CellState.UNKNOWN)
+        n = int(np.count_nonzero(new))
+        if n:
+            states[new] = CellState.FREE
+            self._seen_s[win][new] = self._now_s
+            self._seen_travel[win][new] = self.travel_mm
+            self._grid = None
+            self.version += 1
+        return n
+
+    # -- evidence -----------------------------------------------------------------------------
+
+    def _dropoff_evidence(
+        self,
+        xy: NDArray[np.float64],
+        xyz: NDArray[np.float64],
+        cls: NDArray[np.uint8],
+        floor_depth_mm: float,
+        rig_x_offset_mm: float,
+        sigma_z_mm: NDArray[np.float64],
+    ) -> NDArray[np.uint8]:
+        """``cls`` with the drop-off dots that are not evidence of a drop-off (module docstring)
+        turned into dots of no class: alone (fewer than ``dropoff_min_points`` at one depth
+        nearby), or lowered with a ray that crossed floor level amid this capture's floor dots.
+        ``sigma_z_mm`` (N,): each dot's depth uncertainty."""
+        st = self.settings
+        drop = np.flatnonzero(cls == PointClass.DROPOFF)
+        if len(drop) == 0:
+            return cls
+        depth = xyz[drop, 2] - floor_depth_mm
+        # The lattice is angular: dots at depth Z lie Z/H times as far apart as on the floor.
+        scale = np.maximum(xyz[drop, 2] / floor_depth_mm, 1.0)
+        sig = sigma_z_mm[drop]
+        ok = self._clustered(xy[drop], depth, scale, sig)
+        low = ok & (xyz[drop, 2] > floor_depth_mm)
+        if np.any(low):
+            k = np.flatnonzero(low)
+            p = xyz[drop[k]]
+            cross = _to_frame(
+                self._pose,
+                rig_to_robot(p * (floor_depth_mm / p[:, 2])[:, None], rig_x_offset_mm),
+            )
+            floor = xy[cls == PointClass.FLOOR]
+            ok[k[_surrounded(cross, floor, st.dropoff_cluster_mm)]] = False
+        if not np.all(ok) and np.any(ok):
+            keep = np.flatnonzero(ok)
+            ok[keep] = self._clustered(xy[drop[keep]], depth[keep], scale[keep], sig[keep])
+        out = cls.copy()
+        out[drop[~ok]] = _NO_CLASS
+        return out
+
+    def _clustered(
+        self,
+        xy: NDArray[np.float64],
+        depth_mm: NDArray[np.float64],
+        scale: NDArray[np.float64],
+        sigma_mm: NDArray[np.float64],
+    ) -> NDArray[np.bool_]:
+        """Which drop-off dots (M, 2) have ``dropoff_min_points`` − 1 others within
+        ``dropoff_cluster_mm`` · ``scale`` (of either) at a consistent depth (mm below the
+        floor): within ``dropoff_depth_tolerance_mm`` or three combined sigmas."""
+        st = self.settings
+        need = st.dropoff_min_points
+        m = len(xy)
+        if need <= 1:
+            return np.ones(m, dtype=bool)
+        if m < need:
+            return np.zeros(m, dtype=bool)
+        order = np.argsort(xy[:, 0], kind="stable")  # a band of x at a time bounds the work
+        out = np.zeros(m, dtype=bool)
+        r = st.dropoff_cluster_mm * scale
+        r_max = float(r.max())
+        xs = xy[order, 0]
+        for lo in range(0, m, 512):
+            idx = order[lo : lo + 512]
+            j0 = int(np.searchsorted(xs, xy[idx, 0].min() - r_max))
+            j1 = int(np.searchsorted(xs, xy[idx, 0].max() + r_max, side="right"))
+            cand = order[j0:j1]
+            d2 = (xy[idx, None, 0] - xy[None, cand, 0]) ** 2
+            d2 += (xy[idx, None, 1] - xy[None, cand, 1]) ** 2
+            reach = np.maximum(r[idx, None], r[None, cand])
+            tol = np.maximum(
+                st.dropoff_depth_tolerance_mm,
+                3.0 * np.hypot(sigma_mm[idx, None], sigma_mm[None, cand]),
+            )
+            same = np.abs(depth_mm[idx, None] - depth_mm[None, cand]) <= tol
+            out[idx] = ((d2 <= reach * reach) & same).sum(axis=1) >= need  # itself included
+        return out
+
+    def _add_points(self, xyh_anchor: NDArray[np.float64]) -> None:
+        """Keep new obstacle dots (anchor x, y and height, mm) as exact evidence. A cell keeps
+        the points of the latest capture that saw an obstacle in it: the nearest view and the
+        least odometry between then and now (older views of the same face, placed by older
+        odometry, would smear it by centimetres)."""
+        if self.settings.obstacle_points_max == 0 or len(xyh_anchor) == 0:
+            return
+        a = self._anchor
+        if len(self._points):
+            ni, nj, nin = a.cell_index(xyh_anchor[:, :2])
+            fresh = np.zeros(a.states.shape, dtype=bool)
+            fresh[ni[nin], nj[nin]] = True
+            oi, oj, oin = a.cell_index(self._points[:, :2])
+            keep = ~(oin & fresh[oi, oj])
+            self._points = self._points[keep]
+        self._points = np.vstack([self._points, xyh_anchor])
+        ni, nj, nin = a.cell_index(xyh_anchor[:, :2])
+        self._from_points[ni[nin], nj[nin]] = 1
+
+    def _carve(
+        self,
+        xy: NDArray[np.float64],
+        xyz: NDArray[np.float64],
+        floor_depth_mm: float,
+        rig_x_offset_mm: float,
+        source_mm: tuple[float, float, float],
+    ) -> None:
+        """Drop the kept points this capture's rays passed through (module docstring); a cell
+        left without points becomes UNKNOWN. ``xy`` (N, 2): the dots in the anchor frame,
+        ``xyz`` (N, 3) in the rig frame."""
+        st = self.settings
+        tol = st.carve_tolerance_mm
+        pts = self._points
+        lo, hi = xy.min(axis=0) - 200.0, xy.max(axis=0) + 200.0
+        sel = np.flatnonzero(
+            (pts[:, 0] >= lo[0])
+            & (pts[:, 0] <= hi[0])
+            & (pts[:, 1] >= lo[1])
+            & (pts[:, 1] <= hi[1])
+        )
+        dots = xyz[(xyz[:, 2] > 1e-9) & (xyz[:, 2] < _FAR_MM)]
+        if len(sel) == 0 or len(dots) == 0:
+            return
+        # kept points in this capture's rig frame: X = x − offset, Y = −y, Z = H − h
+        x, y, th = self._pose
+        c, sn = math.cos(th), math.sin(th)
+        dx, dy = pts[sel, 0] - x, pts[sel, 1] - y
+        rx, ry = c * dx + sn * dy, -sn * dx + c * dy
+        src = np.asarray(source_mm, dtype=np.float64)
+        rel = np.column_stack([rx - rig_x_offset_mm, -ry, floor_depth_mm - pts[sel, 2]]) - src
+        ray = dots - src
+        carved = np.zeros(len(sel), dtype=bool)
+        below = np.flatnonzero(rel[:, 2] > tol)  # a ray goes down: nothing above the source
+        if len(below) == 0:
+            return
+        # Candidate rays by slope: a ray passes within tol of a point at depth Z only if its
+        # slope X/Z differs from the point's by at most (1 + (X/Z)²)·tol/Z (the exact 3-D
+        # distance decides below).
+        ray_u = ray[:, 0] / np.maximum(ray[:, 2], 1e-9)
+        order = np.argsort(ray_u, kind="stable")
+        us = ray_u[order]
+        r = rel[below]
+        pu = r[:, 0] / r[:, 2]
+        w = 1.05 * (1.0 + pu * pu) * tol / r[:, 2]
+        lo = np.searchsorted(us, pu - w)
+        hi = np.searchsorted(us, pu + w, side="right")
+        # a point so near the mirrors' plane that a tenth of the rays could pass it is left
+        # alone (carving is for what the laser sweeps, well below the source)
+        few = np.flatnonzero((hi - lo) <= max(8, len(order) // 5))
+        below, r, lo, hi = below[few], r[few], lo[few], hi[few]
+        width = int((hi - lo).max()) if len(few) else 0
+        if width == 0:
+            return
+        length2 = np.einsum("ij,ij->i", ray, ray)
+        for k in range(0, len(below), 256):
+            rk, lk, hk = r[k : k + 256], lo[k : k + 256], hi[k : k + 256]
+            slot = lk[:, None] + np.arange(width)[None, :]
+            valid = slot < hk[:, None]
+            cand = order[np.minimum(slot, len(order) - 1)]  # (m, width) ray indices
+            d = ray[cand]  # (m, width, 3)
+            l2 = length2[cand]
+            t = np.einsum("mk,mwk->mw", rk, d) / l2  # along each ray: 0 source, 1 its dot
+            perp2 = np.einsum("mk,mk->m", rk, rk)[:, None] - t * t * l2
+            before = (t > 0.0) & ((1.0 - t) * np.sqrt(l2) > 3.0 * tol)
+            carved[below[k : k + 256]] = np.any(valid & before & (perp2 < tol * tol), axis=1)
+        if not np.any(carved):
+            return
+        gone = sel[carved]
+        keep = np.ones(len(pts), dtype=bool)
+        keep[gone] = False
+        a = self._anchor
+        gi, gj, inside = a.cell_index(pts[gone, :2])
+        gi, gj = gi[inside], gj[inside]
+        left = np.zeros(a.states.shape, dtype=bool)
+        ki, kj, kin = a.cell_index(pts[keep, :2])
+        left[ki[kin], kj[kin]] = True
+        empty = ~left[gi, gj] & (a.states[gi, gj] == CellState.OBSTACLE)
+        a.states[gi[empty], gj[empty]] = CellState.UNKNOWN
+        self._points = pts[keep]
+
+    def _prune_points(self) -> None:
+        """Drop the points whose cell is no longer an obstacle, one per ``point_spacing_mm``
+        (the newest), at most ``obstacle_points_max`` (the newest)."""
+        st = self.settings
+        pts = self._points
+        if len(pts) == 0:
+            return
+        i, j, inside = self._anchor.cell_index(pts[:, :2])
+        keep = inside & (self._anchor.states[i, j] == CellState.OBSTACLE)
+        pts = pts[keep]
+        if len(pts):
+            q = np.floor(pts[:, :2] / st.point_spacing_mm).astype(np.int64) + (1 << 30)
+            key = (q[:, 0] << 32) | q[:, 1]
+            # the last occurrence of each key: the newest point on that lattice site
+            _, first_rev = np.unique(key[::-1], return_index=True)
+            pts = pts[np.sort(len(pts) - 1 - first_rev)]
+        self._points = pts[-st.obstacle_points_max :] if st.obstacle_points_max else pts[:0]
+
+    @property
+    def obstacle_points(self) -> NDArray[np.float64]:
+        """The kept exact obstacle points (N, 2), robot frame, mm (heights not included)."""
+        x, y, th = self._pose
+        c, sn = math.cos(th), math.sin(th)
+        dx, dy = self._points[:, 0] - x, self._points[:, 1] - y
+        return np.column_stack([c * dx + sn * dy, -sn * dx + c * dy])
+
+    def blocking_evidence(
+        self, max_range_mm: float = math.inf
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+        """Where the chair must not go, exactly as known, within ``max_range_mm`` of the axle:
+        (xy (N, 2) robot frame mm, grow (N,) mm, dropoff (N,) bool).
+
+        An OBSTACLE cell that holds exact points is given by its points (grow 0); every other
+        OBSTACLE or DROPOFF cell by its centre and half-diagonal (anything in the cell lies
+        within ``grow`` of it). The points and cells are stored in the anchor frame and moved
+        into the robot frame exactly (no resampling)."""
+        if self._evidence[0] != self.version:
+            a = self._anchor
+            i, j = np.nonzero(a.states >= CellState.OBSTACLE)
+            with_points = np.zeros(a.states.shape, dtype=bool)
+            if len(self._points):
+                pi, pj, inside = a.cell_index(self._points[:, :2])
+                with_points[pi[inside], pj[inside]] = True
+            cell = ~with_points[i, j]
+            i, j = i[cell], j[cell]
+            xs, ys = a.cell_centers()
+            h = 0.5 * a.settings.resolution_mm * math.sqrt(2.0)
+            xy = np.vstack([np.column_stack([xs[i], ys[j]]), self._points[:, :2]])
+            grow = np.concatenate([np.full(len(i), h), np.zeros(len(self._points))])
+            drop = np.concatenate(
+                [a.states[i, j] == CellState.DROPOFF, np.zeros(len(self._points), bool)]
+            )
+            self._evidence = (self.version, xy, grow, drop)
+        _, xy, grow, drop = self._evidence
+        x, y, th = self._pose
+        c, sn = math.cos(th), math.sin(th)
+        dx, dy = xy[:, 0] - x, xy[:, 1] - y
+        if math.isfinite(max_range_mm):
+            near = dx * dx + dy * dy <= max_range_mm * max_range_mm
+            dx, dy, grow, drop = dx[near], dy[near], grow[near], drop[near]
+        robot = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy])
+        return robot, grow, drop
 
     def _pixels(self, xy: NDArray[np.float64]) -> NDArray[np.float64]:
         """Anchor-frame points (N, 2) mm → continuous (col, row) pixel coordinates of cv2."""
@@ -549,8 +978,15 @@ class FreeSpaceMap:
         """Forget everything (all cells UNKNOWN)."""
         self._anchor.states[:] = CellState.UNKNOWN
         self._seen_s[:] = -np.inf
+        self._seen_travel[:] = -np.inf
         self._contradictions[:] = 0
+        self._dropoff_seen[:] = 0
+        self._obstacle_seen[:] = 0
+        self._from_points[:] = 0
+        self._points = np.zeros((0, 3))
+        self._occupied = None
         self._grid = None
+        self.version += 1
 
     def render_png(self, path: str | Path, cloud: PointCloud | None = None) -> None:
         """Write a top-down picture of the map (see :func:`omnid.core.export.render_topdown`).
@@ -586,6 +1022,33 @@ def _longest_edge(
     d12 = (x2 - x1) ** 2 + (y2 - y1) ** 2
     d20 = (x0 - x2) ** 2 + (y0 - y2) ** 2
     return np.sqrt(np.maximum(np.maximum(d01, d12), d20))
+
+
+def _depth_sigma(cov: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """Each point's depth (Z) standard deviation, mm, from its covariance (0 where unknown)."""
+    if cov.shape[0] != n or n == 0:
+        return np.zeros(n)
+    var = np.asarray(cov[:, 2, 2], dtype=np.float64)
+    return np.sqrt(np.where(np.isfinite(var) & (var > 0), var, 0.0))
+
+
+def _surrounded(
+    pts: NDArray[np.float64], others: NDArray[np.float64], radius_mm: float
+) -> NDArray[np.bool_]:
+    """Which points (M, 2) lie inside the convex hull of the ``others`` (K, 2) within
+    ``radius_mm`` of them: no angular gap of half a turn or more between those neighbours."""
+    out = np.zeros(len(pts), dtype=bool)
+    if len(pts) == 0 or len(others) < 3:
+        return out
+    for i, p in enumerate(pts):
+        d = others - p
+        near = d[np.einsum("ij,ij->i", d, d) <= radius_mm * radius_mm]
+        if len(near) < 3:
+            continue
+        a = np.sort(np.arctan2(near[:, 1], near[:, 0]))
+        gaps = np.diff(np.concatenate([a, a[:1] + 2.0 * math.pi]))
+        out[i] = bool(gaps.max() < math.pi)
+    return out
 
 
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:

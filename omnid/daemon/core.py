@@ -98,7 +98,11 @@ class WorldMap(Protocol):
     """What the core needs of ``omnid.core.freespace.FreeSpaceMap``."""
 
     def update(
-        self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s: float | None = None
+        self,
+        cloud: PointCloud,
+        rig_x_offset_mm: float = 0.0,
+        now_s: float | None = None,
+        source_mm: tuple[float, float, float] | None = None,
     ) -> Any: ...
     def move(self, dx_mm: float, dy_mm: float, dtheta_rad: float) -> Any: ...
 
@@ -138,12 +142,21 @@ def transform_cloud(
     """
     if len(cloud) == 0 or (dx_mm == 0.0 and dy_mm == 0.0 and dtheta_rad == 0.0):
         return cloud
-    x = cloud.xyz[:, 0] + rig_x_offset_mm - dx_mm
-    y = -cloud.xyz[:, 1] - dy_mm
+    return replace(
+        cloud, xyz=transform_rig_xyz(cloud.xyz, dx_mm, dy_mm, dtheta_rad, rig_x_offset_mm)
+    )
+
+
+def transform_rig_xyz(
+    xyz: Any, dx_mm: float, dy_mm: float, dtheta_rad: float, rig_x_offset_mm: float
+) -> Any:
+    """Rig-frame points (N, 3) re-expressed after the robot moved (see :func:`transform_cloud`)."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    x = xyz[:, 0] + rig_x_offset_mm - dx_mm
+    y = -xyz[:, 1] - dy_mm
     c, s = math.cos(dtheta_rad), math.sin(dtheta_rad)
     xn, yn = c * x + s * y, -s * x + c * y
-    xyz = np.column_stack([xn - rig_x_offset_mm, -yn, cloud.xyz[:, 2]])
-    return replace(cloud, xyz=xyz)
+    return np.column_stack([xn - rig_x_offset_mm, -yn, xyz[:, 2]])
 
 
 class ControlCore:
@@ -213,11 +226,19 @@ class ControlCore:
             self.motion.duties,
         )
         dx, dy, dth = self.odometry.update(
-            int(status.left_clocks), int(status.right_clocks), float(status.timestamp_s)
+            int(status.left_clocks),
+            int(status.right_clocks),
+            float(status.timestamp_s),
+            self.motion.targets_mm_s,
         )
         if dx or dy or dth:
             self.map.move(dx, dy, dth)
             self.path_mm += math.hypot(dx, dy)
+        occupy = getattr(self.map, "occupy", None)
+        if occupy is not None:  # the chair's own trail is seen free space
+            sf = self.config.safety
+            w = 0.5 * sf.footprint_width_mm
+            occupy(-sf.footprint_rear_mm, sf.footprint_front_mm, -w, w)
         x, y, th = (float(v) for v in self.odometry.pose)
         self._poses.append((float(status.timestamp_s), x, y, th, self.path_mm))
         horizon = float(status.timestamp_s) - self.config.control.pose_history_s
@@ -269,19 +290,18 @@ class ControlCore:
             log.warning("calibration_lost cleared: %.0f %% of the dots fit again", 100 * fit)
             self.calibration_lost = False
         then = self._pose_at(capture_time_s)
+        offset = self.config.perception.rig_x_offset_mm
+        source = (0.0, 0.0, 0.0)  # the laser, where it was at the capture (current rig frame)
         if then is not None and self._poses:
             _, x1, y1, th1, _ = self._poses[-1]
             x0, y0, th0, _ = then
             c, s = math.cos(th0), math.sin(th0)
             dxw, dyw = x1 - x0, y1 - y0
-            cloud = transform_cloud(
-                cloud,
-                c * dxw + s * dyw,
-                -s * dxw + c * dyw,
-                th1 - th0,
-                self.config.perception.rig_x_offset_mm,
-            )
-        self.map.update(cloud, self.config.perception.rig_x_offset_mm, capture_time_s)
+            motion = (c * dxw + s * dyw, -s * dxw + c * dyw, th1 - th0)
+            cloud = transform_cloud(cloud, *motion, offset)
+            sx, sy, sz = (float(v) for v in transform_rig_xyz([0.0, 0.0, 0.0], *motion, offset)[0])
+            source = (sx, sy, sz)
+        self.map.update(cloud, offset, capture_time_s, source_mm=source)
         if len(cloud) == 0:
             return  # no dots: no evidence that the way is clear, the map's age keeps growing
         if self.perception_time_s is None or capture_time_s > self.perception_time_s:
@@ -331,6 +351,17 @@ class ControlCore:
             return False
         cos = (float(vl) * self.bump_direction[0] + float(vr) * self.bump_direction[1]) / norm
         return cos >= math.cos(math.radians(self.config.motion.bump_same_direction_deg))
+
+    def _evidence(self) -> tuple[Any, object]:
+        """The map's exact blocking evidence near the chair and a key naming it (its version and
+        the chair's pose in it), or (None, None) for a map that has none (a bare grid)."""
+        get = getattr(self.map, "blocking_evidence", None)
+        if get is None:
+            return None, None
+        sf = self.config.safety
+        reach = sf.horizon_mm + self.safety.r_max_mm + self.grid.settings.resolution_mm
+        key = (getattr(self.map, "version", None), getattr(self.map, "pose_in_anchor", None))
+        return get(reach), key
 
     def step(self, now_s: float) -> WheelCommand:
         """One control cycle at monotonic time ``now_s``; never raises."""
@@ -477,7 +508,8 @@ class ControlCore:
         if bump_refused:
             decision = SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.BUMP,))
         else:
-            decision = self.safety.check(self.grid, v_req, w_req, age, now_s)
+            evidence, key = self._evidence()
+            decision = self.safety.check(self.grid, v_req, w_req, age, now_s, evidence, key)
         reasons.extend(decision.reasons)
         if decision.scale < 1.0 and (decision.stopped or decision.reasons):
             # refused or limited: brake at the emergency rate if the chair is faster than allowed

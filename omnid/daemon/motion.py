@@ -177,31 +177,82 @@ class WheelPI:
 
 
 class Odometry:
-    """Wheel clock counters → pose and per-update motion increments (exact arcs)."""
+    """Wheel clock counters → pose and per-update motion increments (exact arcs).
+
+    A counter says where a wheel is only to a clock (31.4 mm): taken as it stands, the heading
+    jumps by up to 31.4 mm / track (3°) each time one wheel's hole passes before the other's,
+    and whatever the map placed by it (a doorway's jambs a metre away) moves sideways by 5 cm.
+    So between counter changes each wheel is carried on from the hole it last passed at the
+    slower of its last two holes' pace and the speed it is driven at (``targets_mm_s``, 0 when
+    it is told to stop or to turn the other way), never past the next hole (it would have
+    counted) — the next counter change sets it exactly on that hole again.
+    """
 
     def __init__(self, settings: MotionSettings, history: int = 256) -> None:
         self.settings = settings
         self.pose = np.zeros(3)
         self._last: tuple[int, int] | None = None
         self._hist: deque[tuple[float, int, int]] = deque(maxlen=history)
+        self._pos = [0.0, 0.0]  # estimated wheel travel, mm
+        self._edge: list[tuple[float, float, int] | None] = [None, None]  # (t, hole mm, sign)
+        self._rate = [0.0, 0.0]  # pace of the last two holes, mm/s (0: unknown)
 
     def reset(self) -> None:
         self._last = None
         self._hist.clear()
+        self._edge = [None, None]
+        self._rate = [0.0, 0.0]
 
-    def update(self, left_clocks: int, right_clocks: int, t_s: float) -> tuple[float, float, float]:
-        """New counter values at time ``t_s`` → (dx mm, dy mm, dθ rad) since the last update.
+    def update(
+        self,
+        left_clocks: int,
+        right_clocks: int,
+        t_s: float,
+        targets_mm_s: tuple[float, float] = (0.0, 0.0),
+    ) -> tuple[float, float, float]:
+        """New counter values at time ``t_s`` (and the wheel speeds the controller drives
+        towards now) → (dx mm, dy mm, dθ rad) since the last update.
 
         The increment is in the robot frame at the previous pose (what ``FreeSpaceMap.move``
         takes). The first update only sets the reference and returns zeros.
         """
-        self._hist.append((float(t_s), int(left_clocks), int(right_clocks)))
+        t = float(t_s)
+        clocks = (int(left_clocks), int(right_clocks))
+        self._hist.append((t, *clocks))
+        mpc = self.settings.mm_per_clock
         if self._last is None:
-            self._last = (int(left_clocks), int(right_clocks))
+            self._last = clocks
+            self._pos = [c * mpc for c in clocks]
             return 0.0, 0.0, 0.0
-        dl = (int(left_clocks) - self._last[0]) * self.settings.mm_per_clock
-        dr = (int(right_clocks) - self._last[1]) * self.settings.mm_per_clock
-        self._last = (int(left_clocks), int(right_clocks))
+        new = [0.0, 0.0]
+        for k in (0, 1):
+            c, c0 = clocks[k], self._last[k]
+            if c != c0:
+                sign = 1 if c > c0 else -1
+                hole = (c if sign > 0 else c + 1) * mpc  # the hole just passed
+                edge = self._edge[k]
+                self._rate[k] = 0.0
+                if edge is not None and edge[2] == sign and t > edge[0]:
+                    self._rate[k] = abs(hole - edge[1]) / (t - edge[0])
+                self._edge[k] = (t, hole, sign)
+                new[k] = hole
+                continue
+            edge = self._edge[k]
+            target = float(targets_mm_s[k])
+            if edge is None or target * edge[2] <= 0.0:
+                new[k] = self._pos[k]  # no pace known, told to stop or to reverse: hold
+                continue
+            rate = self._rate[k]
+            if abs(target) < 0.5 * rate:  # told to slow down: it will, soon
+                rate = abs(target)
+            ahead = edge[1] + edge[2] * min(rate * (t - edge[0]), 0.97 * mpc)
+            lo, hi = c * mpc, (c + 1) * mpc  # the counter says the wheel is in here
+            new[k] = min(max(ahead, lo), hi)
+            # never back against the way it is going
+            new[k] = max(new[k], self._pos[k]) if edge[2] > 0 else min(new[k], self._pos[k])
+        self._last = clocks
+        dl, dr = new[0] - self._pos[0], new[1] - self._pos[1]
+        self._pos = new
         if dl == 0.0 and dr == 0.0:
             return 0.0, 0.0, 0.0
         dx, dy, dth = arc_displacement(dl, dr, self.settings.track_mm)

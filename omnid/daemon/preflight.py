@@ -201,10 +201,12 @@ def preflight(config: OmnidConfig, source: str | Path = "configuration") -> Pref
                 result.add("perception.calibration_path", "ok", f"{path} loaded")
         _camera(result, config)
     else:
+        creep = config.safety.unknown_policy == "creep"
         result.add(
             "perception.enabled",
             "warning",
-            "false: no free space is ever seen, forward motion is refused (turning and stop work)",
+            "false: no free space is ever seen, forward motion is refused"
+            + (" (turns creep, stop works)" if creep else " (and every turn: only stop works)"),
         )
     cu = config.control_unit
     _serial_port(result, "control_unit.port", cu.port, cu.reconnect_max_s)

@@ -1,6 +1,7 @@
 """The safety layer: a command runs only if it is safe in the free-space map (thesis 4.1.2).
 
-The chair's footprint (a rectangle in the robot frame, plus a margin) is swept along the
+The chair's footprint (a rectangle in the robot frame, plus a margin ahead and behind and a
+side margin left and right) is swept along the
 commanded motion — a straight line, an arc or a turn in place, exactly as the wheels would move
 it (:func:`omnid.core.kinematics.integrate_arc`) — over a look-ahead horizon, and checked
 against an :class:`~omnid.core.occupancy.OccupancyGrid`. Obstacles and drop-offs both block.
@@ -12,10 +13,24 @@ kind of motion. From the first blocked ``s`` (``clearance``) come:
   an escape move (below) → at most ``escape_speed_mm_s`` / ``escape_turn_rad_s``;
 - slow zone: clearance ≤ ``slow_distance_mm`` → at most ``slow_speed_mm_s``;
 - approach: time to reach the stop line ≥ ``approach_time_s``, and the chair can still brake
-  before it at ``brake_decel_mm_s2``;
+  before it at ``brake_decel_mm_s2``, but never slower than ``approach_min_speed_mm_s`` (so
+  that it arrives at the stop line instead of creeping towards it ever slower);
 - unknown space: if more than ``unknown_max_fraction`` of the swept cells within
   ``unknown_distance_mm`` are unknown → at most ``unknown_speed_mm_s``;
+- unseen space is not free (``unknown_policy``): the footprint's sweep into cells never seen —
+  the tail swinging out in a turn, every reverse move, an arc beside the chair — is refused
+  like an obstacle's stop zone (``refuse``, reason ``unknown_stop``), and the chair may only
+  approach it as fast as it could still stop before it (reason ``unknown_ahead``); with
+  ``creep`` it is crossed at ``unknown_creep_speed_mm_s`` (``unknown_creep``). One band is
+  crossed at creep speed under either policy: the ``front_blind_mm`` straight ahead of the
+  footrests, which the laser cannot see from where the chair stands (its nearest dots fall
+  farther out) — at start-up only driving into it shows what lies beyond; once the chair has
+  moved that far the band lies in what the first capture saw;
 - stale perception (no cloud, or older than ``perception_timeout_s``) → no forward motion.
+
+Blocking evidence comes from the map (``FreeSpaceMap.blocking_evidence``): the obstacle dots
+themselves where the laser saw them (exact, no cell quantisation) and cell centres grown by
+their half-diagonal elsewhere; from a bare grid, every blocking cell is a grown centre.
 
 Escape moves (a chair in a pocket between boxes must not be stranded): in the stop zone, a move
 that does not close the gap to what is near is allowed at a creep speed. The gap is the smallest
@@ -44,7 +59,7 @@ import logging
 import math
 from dataclasses import dataclass
 from enum import Enum
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,6 +80,8 @@ class Reason(Enum):
     APPROACH = "approach"
     ESCAPE = "escape_creep"  # in the stop zone, but the move opens the gap: creep speed
     UNKNOWN_AHEAD = "unknown_ahead"
+    UNKNOWN_STOP = "unknown_stop"  # the sweep would enter space never seen: refused
+    UNKNOWN_CREEP = "unknown_creep"  # ... crossed at creep speed (policy creep, blind band)
     BUMP = "bump"  # a wheel did not turn as commanded: stopped, that direction refused
     PERCEPTION_STALE = "perception_stale"
     CALIBRATION_LOST = "calibration_lost"  # the captures no longer fit the calibration
@@ -83,7 +100,11 @@ class SafetySettings(Settings):
     footprint_front_mm: float = setting(350.0, 50.0, 2000.0)
     footprint_rear_mm: float = setting(750.0, 50.0, 2000.0)  # from the axle backward (castors)
     footprint_width_mm: float = setting(700.0, 200.0, 2000.0)
-    margin_mm: float = setting(50.0, 0.0, 500.0)  # added on every side
+    margin_mm: float = setting(50.0, 0.0, 500.0)  # added ahead and behind
+    # added left and right: a doorway 820 mm clear leaves 60 mm beside a 700 mm chair — the
+    # side margin, the rider's aim and the seen points' noise must fit in it; openings narrower
+    # than the chair plus both side margins are refused
+    side_margin_mm: float = setting(25.0, 0.0, 500.0)
     # look-ahead along the path (fastest footprint point)
     horizon_mm: float = setting(2500.0, 200.0, 10000.0)
     stop_distance_mm: float = setting(150.0, 10.0, 2000.0)
@@ -93,9 +114,20 @@ class SafetySettings(Settings):
     approach_time_s: float = setting(2.0, 0.1, 10.0)
     # the chair must be able to stop before the stop line
     brake_decel_mm_s2: float = setting(600.0, 50.0, 5000.0)
+    # ... but it reaches the stop line: the approach cap never falls below this (fastest point;
+    # room/T alone is an exponential approach that never arrives — a chair creeping ever slower
+    # 10 mm from its stop line). Stopping from it takes under 1 mm at the emergency rate
+    approach_min_speed_mm_s: float = setting(20.0, 0.0, 100.0)
     unknown_distance_mm: float = setting(1000.0, 0.0, 10000.0)
     unknown_max_fraction: float = setting(0.3, 0.0, 1.0)
     unknown_speed_mm_s: float = setting(120.0, 10.0, 1000.0)
+    # sweeping into space never seen: "refuse" (like an obstacle's stop zone) or "creep"
+    unknown_policy: Literal["refuse", "creep"] = "refuse"
+    unknown_creep_speed_mm_s: float = setting(60.0, 5.0, 200.0)  # fastest footprint point
+    # ahead of the footprint (margin included) the laser cannot see from where the chair stands:
+    # rig offset + nearest dot − footprint front − margin (300 + 330 − 350 − 50 = 230), rounded
+    # up; crossed at unknown_creep_speed_mm_s whatever the policy (0: refused like the rest)
+    front_blind_mm: float = setting(250.0, 0.0, 2000.0)
     # perception older than this → no forward motion; the stationary capture needs its period
     # + ~0.2 s; with perception.capture: stream (a cloud every ~50 ms) 0.3 s is enough
     perception_timeout_s: float = setting(1.5, 0.05, 5.0)
@@ -251,6 +283,21 @@ def contact_path_s(
     return np.asarray(s_mm, dtype=np.float64)
 
 
+#: Blocking evidence in the robot frame: points (N, 2) mm, how far around each point the thing
+#: may extend (N,) mm (0 for an exact point, a cell's half-diagonal for a cell centre), and
+#: which are drop-offs (N,) (``FreeSpaceMap.blocking_evidence``).
+Evidence = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
+
+
+def _unique(reasons: list[Reason]) -> tuple[Reason, ...]:
+    """The reasons in order, each once."""
+    out: list[Reason] = []
+    for r in reasons:
+        if r not in out:
+            out.append(r)
+    return tuple(out)
+
+
 class SafetyLayer:
     """Checks requested twists against a grid (see the module docstring)."""
 
@@ -259,7 +306,7 @@ class SafetyLayer:
         s = settings
         m = s.margin_mm
         self._x0, self._x1 = -s.footprint_rear_mm - m, s.footprint_front_mm + m
-        self._y0 = -0.5 * s.footprint_width_mm - m
+        self._y0 = -0.5 * s.footprint_width_mm - s.side_margin_mm
         self._y1 = -self._y0
         # the chair itself (no margin): cells under it are not seen and not obstacles
         self._fx0, self._fx1 = -s.footprint_rear_mm, s.footprint_front_mm
@@ -271,10 +318,13 @@ class SafetyLayer:
         self.r_max_mm = float(np.max(np.hypot(corners[:, 0], corners[:, 1])))
         self._pts_cache: tuple[float, NDArray[np.float64]] | None = None
         self._map_key: object = None  # the map content the caches below belong to
+        # blocking evidence of the current map: x, y, grow (mm), drop-off
         self._blocking: (
-            tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None
+            tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
+            | None
         ) = None
         self._sweeps: dict[tuple[float, float], tuple[float, CellState | None, float]] = {}
+        self._unknown: dict[tuple[float, float], tuple[float, float]] = {}
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
         ) = None
@@ -314,58 +364,96 @@ class SafetyLayer:
         )
 
     def sweep(
-        self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        evidence: Evidence | None = None,
+        evidence_key: object = None,
     ) -> tuple[float, CellState | None, float]:
-        """Sweep the footprint along the motion direction of (v, ω), analytically per cell.
+        """Sweep the footprint along the motion direction of (v, ω), analytically per point.
 
         Returns (clearance_mm, blocking state or None, unknown fraction within
         ``unknown_distance_mm``). Clearance is the path parameter s (travel of the fastest
-        footprint point) at which the footprint first touches an OBSTACLE or DROPOFF cell
-        (``inf`` if none within the horizon): each blocking cell is a point (its centre) and the
-        footprint is grown by half a cell, so "centre inside the grown footprint" is "footprint
-        overlaps the cell"; the point's path relative to the chair is a circle about the
-        instantaneous centre of rotation (a line when ω = 0), and its first crossing of the
-        grown rectangle's edges is solved in closed form (:func:`contact_path_s`).
+        footprint point) at which the footprint first touches blocking evidence (``inf`` if
+        none within the horizon): each piece is a point and the footprint is grown by how far
+        the thing may extend around it (0 for an exact obstacle point, half a cell's diagonal
+        for a cell centre), so "point inside the grown footprint" is "footprint touches it";
+        the point's path relative to the chair is a circle about the instantaneous centre of
+        rotation (a line when ω = 0), and its first crossing of the grown rectangle's edges is
+        solved in closed form (:func:`contact_path_s`).
+
+        ``evidence`` (robot frame, see :data:`Evidence`) comes from the map; without it every
+        OBSTACLE/DROPOFF cell of ``grid`` is a grown cell centre. ``evidence_key`` names the
+        evidence's content (the map's version and pose) so that results can be cached.
 
         The unknown fraction is that of the FREE/UNKNOWN cells the footprint newly covers before
-        ``min(unknown_distance_mm, clearance)``. The blocking cells are extracted once per map
-        content, results are cached per (map content, v, ω) (a standing chair with a held
-        command costs a dictionary lookup). :meth:`sweep_reference` is the slow sampled sweep
-        this is tested against.
+        ``min(unknown_distance_mm, clearance)`` (0 for a motion no faster than
+        ``unknown_speed_mm_s``, which it cannot cap). Results are cached per (map content, v, ω) (a
+        standing chair with a held command costs a dictionary lookup). :meth:`sweep_reference`
+        is the slow sampled sweep this is tested against.
         """
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm  # speed of the fastest point
         if u <= 0.0:
             return math.inf, None, 0.0
-        key = (grid.settings, grid.states.shape, grid.states.tobytes())
-        if key != self._map_key:
-            self._map_key = key
-            self._sweeps.clear()
-            self._blocking = None
+        self._use_map(grid, evidence, evidence_key)
         cached = self._sweeps.get((v_mm_s, omega_rad_s))
         if cached is not None:
             return cached
-        res = grid.settings.resolution_mm
+        assert self._blocking is not None
+        bx, by, grow, bdrop = self._blocking
         xs, ys = self._centres(grid)
-        if self._blocking is None:
-            i, j = np.nonzero(grid.states >= CellState.OBSTACLE)  # OBSTACLE or DROPOFF
-            self._blocking = (xs[i], ys[j], grid.states[i, j] == CellState.DROPOFF)
-        bx, by, bdrop = self._blocking
-        h = 0.5 * res * math.sqrt(2.0)  # a cell lies within this of its centre
-        rect = (self._x0 - h, self._x1 + h, self._y0 - h, self._y1 + h)
-        sb = self._contact(bx, by, v_mm_s, omega_rad_s, rect, u)
+        sb = self._contact(bx, by, grow, v_mm_s, omega_rad_s, u)
         clearance, state = math.inf, None
         if sb.size:
             k = int(np.argmin(sb))
             if math.isfinite(sb[k]):
                 clearance = float(sb[k])
+                h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
                 tie = sb <= clearance + h
                 state = CellState.DROPOFF if np.any(bdrop[tie]) else CellState.OBSTACLE
-        unknown = self._unknown_fraction(grid, xs, ys, v_mm_s, omega_rad_s, rect, u, clearance)
+        h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
+        rect = (self._x0 - h, self._x1 + h, self._y0 - h, self._y1 + h)
+        unknown = 0.0
+        if u > self.settings.unknown_speed_mm_s:  # the fraction caps only what is faster
+            unknown = self._unknown_fraction(grid, xs, ys, v_mm_s, omega_rad_s, rect, u, clearance)
         result = (clearance, state, unknown)
         if len(self._sweeps) >= 256:
             self._sweeps.clear()
-        self._sweeps[(v_mm_s, omega_rad_s)] = result
+        if self._map_key is not None:
+            self._sweeps[(v_mm_s, omega_rad_s)] = result
         return result
+
+    def _use_map(self, grid: OccupancyGrid, evidence: Evidence | None, key: object) -> None:
+        """Make the caches belong to this map content (uncacheable: evidence without a key)."""
+        map_key: object
+        if evidence is not None and key is None:
+            map_key = None
+        else:
+            map_key = (grid.settings, grid.states.shape, grid.states.tobytes(), key)
+        if map_key is not None and map_key == self._map_key and self._blocking is not None:
+            return
+        self._map_key = map_key
+        self._sweeps.clear()
+        self._unknown.clear()
+        if evidence is None:
+            xs, ys = self._centres(grid)
+            i, j = np.nonzero(grid.states >= CellState.OBSTACLE)  # OBSTACLE or DROPOFF
+            h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
+            self._blocking = (
+                xs[i],
+                ys[j],
+                np.full(len(i), h),
+                grid.states[i, j] == CellState.DROPOFF,
+            )
+        else:
+            xy, grow, drop = evidence
+            self._blocking = (
+                np.asarray(xy[:, 0], dtype=np.float64),
+                np.asarray(xy[:, 1], dtype=np.float64),
+                np.asarray(grow, dtype=np.float64),
+                np.asarray(drop, dtype=bool),
+            )
 
     def _centres(self, grid: OccupancyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         if self._centres_cache is None or self._centres_cache[0] != grid.settings:
@@ -376,50 +464,125 @@ class SafetyLayer:
         self,
         px: NDArray[np.float64],
         py: NDArray[np.float64],
+        grow: NDArray[np.float64] | float,
         v_mm_s: float,
         omega_rad_s: float,
-        rect: tuple[float, float, float, float],
         u: float,
     ) -> NDArray[np.float64]:
-        """Contact path parameter (mm) of each cell centre (``rect``: the footprint grown by half a
-        cell), the cells whose centre lies under the chair itself (the footprint without its
-        margin) ignored (see :func:`contact_path_s`)."""
+        """Contact path parameter (mm) of each point, the footprint grown by the point's own
+        ``grow`` (mm); points under the chair itself (the footprint without its margin)
+        ignored (see :func:`contact_path_s`)."""
         hz = self.settings.horizon_mm
+        rect = (self._x0 - grow, self._x1 + grow, self._y0 - grow, self._y1 + grow)
         s_mm = contact_path_s(px, py, v_mm_s, omega_rad_s, rect, u, hz)
         own = (px >= self._fx0) & (px <= self._fx1) & (py >= self._fy0) & (py <= self._fy1)
         band = np.flatnonzero((s_mm == 0.0) & ~own)
         if band.size:
-            # Cells overlapping the footprint's margin at the start (centre inside the margin, or
-            # within half a cell of its edge) are inside the grown rectangle already. Each is
+            # Points overlapping the footprint's margin at the start (inside the margin, or
+            # within their own grow of its edge) are inside the grown rectangle already. Each is
             # tested against the footprint grown (or shrunk, inside the margin) by its own
             # Chebyshev distance instead: in contact at once when the motion brings it nearer,
-            # later when it draws away first and comes back. So a cell seen inside the margin
+            # later when it draws away first and comes back. So a thing seen inside the margin
             # is never driven into (the margin is not traded), and never strands the chair.
             bx, by = px[band], py[band]
             g = np.maximum(
                 np.maximum(self._x0 - bx, bx - self._x1), np.maximum(self._y0 - by, by - self._y1)
             )
-            g = g - 1e-9 * (np.abs(g) + 1.0)  # the cell just outside its own rectangle
+            g = g - 1e-9 * (np.abs(g) + 1.0)  # the point just outside its own rectangle
             grown = (self._x0 - g, self._x1 + g, self._y0 - g, self._y1 + g)
             s_mm[band] = contact_path_s(bx, by, v_mm_s, omega_rad_s, grown, u, hz)
         s_mm[own] = math.inf
         return s_mm
 
-    def escape_gaps(
+    def unknown_clearance(
         self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float
-    ) -> NDArray[np.float64]:
-        """Distances (mm) between the footprint without its margin and each blocking cell centre
-        near it, now and at 6 poses evenly along the first ``escape_step_mm`` (travel of the
-        fastest footprint point) of the motion (v, ω): shape (7, N), row 0 = now. Near: within
-        ``margin_mm + stop_distance_mm`` plus a cell and the step of the footprint now; the cells
-        under the chair itself are ignored, as in :meth:`sweep`.
+    ) -> tuple[float, float]:
+        """First contact (mm of the fastest point's travel) of the footprint's sweep with cells
+        never seen: (anywhere but the blind band, in the blind band ahead of the footrests —
+        only for forward moves; ``inf`` for none). Only as far as a speed cap could bind:
+        ``stop_distance_mm`` plus the approach time (or braking distance) at this speed.
+
+        UNKNOWN cells of ``grid`` and everything off it count, by their centres against the
+        footprint itself (no margin: the margin is for the position error of things seen; the
+        footprint never covers the centre of a cell never seen — the map's resolution). Cells
+        whose centre lies under the chair are ignored (the map marks them FREE: the chair's own
+        trail, by the same centre rule, so that retracing the trail finds it free). Call
+        :meth:`sweep` (or :meth:`check`) first for this map content: the result is cached with
+        the sweeps.
         """
         s = self.settings
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
-        self.sweep(grid, v_mm_s, omega_rad_s)  # the blocking cells of this map (cached)
+        if u <= 0.0:
+            return math.inf, math.inf
+        cached = self._unknown.get((v_mm_s, omega_rad_s))
+        if cached is not None and self._map_key is not None:
+            return cached
+        g = grid.settings
+        res = g.resolution_mm
+        h = 0.5 * res * math.sqrt(2.0)
+        reach = s.stop_distance_mm + max(u * s.approach_time_s, u * u / (2 * s.brake_decel_mm_s2))
+        reach = min(reach + res, s.horizon_mm)
+        ss = np.linspace(0.0, reach, 9)
+        th = ss * (omega_rad_s / u)
+        if omega_rad_s == 0.0:
+            ox, oy = ss * (v_mm_s / u), np.zeros_like(ss)
+        else:
+            r = v_mm_s / omega_rad_s
+            ox, oy = r * np.sin(th), r * (1.0 - np.cos(th))
+        # The swept footprint's bounding box: the corners along the path (the path between
+        # samples bulges outwards by at most ``bulge``).
+        cx = np.array([self._fx0, self._fx0, self._fx1, self._fx1])
+        cy = np.array([self._fy0, self._fy1, self._fy0, self._fy1])
+        c, sn = np.cos(th)[:, None], np.sin(th)[:, None]
+        wx = ox[:, None] + c * cx - sn * cy
+        wy = oy[:, None] + sn * cx + c * cy
+        bulge = self.r_max_mm * (1.0 - math.cos(0.5 * abs(float(th[1] - th[0]))))
+        pad = res + bulge
+        i0 = math.floor((wx.min() - pad - g.x_min_mm) / res)
+        i1 = math.floor((wx.max() + pad - g.x_min_mm) / res) + 1
+        j0 = math.floor((wy.min() - pad - g.y_min_mm) / res)
+        j1 = math.floor((wy.max() + pad - g.y_min_mm) / res) + 1
+        nx, ny = grid.states.shape
+        sub = np.full((i1 - i0, j1 - j0), np.int8(CellState.UNKNOWN))  # off the grid: unseen
+        a0, a1, b0, b1 = max(i0, 0), min(i1, nx), max(j0, 0), min(j1, ny)
+        if a1 > a0 and b1 > b0:
+            sub[a0 - i0 : a1 - i0, b0 - j0 : b1 - j0] = grid.states[a0:a1, b0:b1]
+        ii, jj = np.nonzero(sub == CellState.UNKNOWN)
+        px = g.x_min_mm + (i0 + ii + 0.5) * res
+        py = g.y_min_mm + (j0 + jj + 0.5) * res
+        body = (self._fx0, self._fx1, self._fy0, self._fy1)
+        s_mm = contact_path_s(px, py, v_mm_s, omega_rad_s, body, u, s.horizon_mm)
+        s_mm[s_mm == 0.0] = math.inf  # under the chair now: its own trail
+        blind = np.zeros(len(px), dtype=bool)
+        if v_mm_s > 0.0 and s.front_blind_mm > 0.0:
+            blind = (px > self._fx1) & (px <= self._x1 + s.front_blind_mm + h)
+            blind &= np.abs(py) <= self._y1 + h
+        far = s_mm[~blind]
+        near = s_mm[blind]
+        result = (
+            float(far.min()) if far.size else math.inf,
+            float(near.min()) if near.size else math.inf,
+        )
+        result = tuple(x if x <= reach else math.inf for x in result)  # type: ignore[assignment]
+        if self._map_key is not None:
+            self._unknown[(v_mm_s, omega_rad_s)] = result
+        return result
+
+    def escape_gaps(
+        self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float
+    ) -> NDArray[np.float64]:
+        """Distances (mm) between the footprint without its margin and each piece of blocking
+        evidence near it (an exact point, or a cell's centre), now and at 6 poses evenly along
+        the first ``escape_step_mm`` (travel of the fastest footprint point) of the motion
+        (v, ω): shape (7, N), row 0 = now. Near: within ``margin_mm + stop_distance_mm`` plus a
+        cell and the step of the footprint now; points under the chair itself are ignored, as
+        in :meth:`sweep`. Uses the evidence of the last :meth:`sweep`.
+        """
+        s = self.settings
+        u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
         if u <= 0.0 or self._blocking is None:
             return np.zeros((7, 0))
-        bx, by, _ = self._blocking
+        bx, by, _, _ = self._blocking
         reach = s.margin_mm + s.stop_distance_mm + grid.settings.resolution_mm + s.escape_step_mm
         own = (bx >= self._fx0) & (bx <= self._fx1) & (by >= self._fy0) & (by <= self._fy1)
         near = np.flatnonzero((self._rect_distance(bx, by) <= reach) & ~own)
@@ -431,7 +594,7 @@ class SafetyLayer:
         else:
             r = v_mm_s / omega_rad_s
             ox, oy = r * np.sin(th), r * (1.0 - np.cos(th))
-        # each cell in the robot frame of each pose: R(−θ)·(p − o)
+        # each point in the robot frame of each pose: R(−θ)·(p − o)
         c, sn = np.cos(th)[:, None], np.sin(th)[:, None]
         dx, dy = px[None, :] - ox[:, None], py[None, :] - oy[:, None]
         return self._rect_distance(c * dx + sn * dy, -sn * dx + c * dy)
@@ -442,7 +605,14 @@ class SafetyLayer:
         ey = np.maximum(np.maximum(self._fy0 - y, y - self._fy1), 0.0)
         return np.asarray(np.hypot(ex, ey), dtype=np.float64)
 
-    def is_escape(self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float) -> bool:
+    def is_escape(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        evidence: Evidence | None = None,
+        evidence_key: object = None,
+    ) -> bool:
         """Whether a move in the stop zone is an escape move (module docstring), from
         :meth:`escape_gaps` over the first ``escape_step_mm``: the gap to the nearest cell never
         drops by more than ``escape_tolerance_mm`` (the move does not close on what is near),
@@ -451,6 +621,7 @@ class SafetyLayer:
         s = self.settings
         if s.escape_speed_mm_s <= 0.0:
             return False
+        self.sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)  # cached after check()
         d = self.escape_gaps(grid, v_mm_s, omega_rad_s)
         if d.shape[1] == 0:
             return False  # nothing near, yet in the stop zone: not a pocket, keep the refusal
@@ -568,8 +739,13 @@ class SafetyLayer:
         omega_rad_s: float,
         perception_age_s: float | None,
         now_s: float = 0.0,
+        evidence: Evidence | None = None,
+        evidence_key: object = None,
     ) -> SafetyDecision:
-        """The allowed twist for a requested (v mm/s, ω rad/s), given the map and its age (s)."""
+        """The allowed twist for a requested (v mm/s, ω rad/s), given the map and its age (s).
+
+        ``evidence`` / ``evidence_key``: the map's exact blocking evidence (see :meth:`sweep`);
+        ``grid`` gives the unknown cells either way."""
         s = self.settings
         if not (math.isfinite(v_mm_s) and math.isfinite(omega_rad_s)):
             return self._report(SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.FAULT,)), now_s)
@@ -582,9 +758,12 @@ class SafetyLayer:
         if stale and v_mm_s > 0:
             reasons.append(Reason.PERCEPTION_STALE)
             caps.append(0.0)
-        clearance, state, unknown = self.sweep(grid, v_mm_s, omega_rad_s)
+        clearance, state, unknown = self.sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
         if clearance <= s.stop_distance_mm:
-            if state is CellState.OBSTACLE and self.is_escape(grid, v_mm_s, omega_rad_s):
+            escape = state is CellState.OBSTACLE and self.is_escape(
+                grid, v_mm_s, omega_rad_s, evidence, evidence_key
+            )
+            if escape:
                 reasons.append(Reason.ESCAPE)
                 cap_v = s.escape_speed_mm_s / abs(v_mm_s) if v_mm_s else math.inf
                 cap_w = s.escape_turn_rad_s / abs(omega_rad_s) if omega_rad_s else math.inf
@@ -599,18 +778,47 @@ class SafetyLayer:
             if clearance <= s.slow_distance_mm and u > s.slow_speed_mm_s:
                 reasons.append(Reason.SLOW_ZONE)
                 caps.append(s.slow_speed_mm_s)
-            cap = min(room / s.approach_time_s, math.sqrt(2.0 * s.brake_decel_mm_s2 * room))
+            cap = self._approach_cap(room)
             if u > cap:
                 reasons.append(Reason.APPROACH)
                 caps.append(cap)
+        unseen, blind = self.unknown_clearance(grid, v_mm_s, omega_rad_s)
+        creep = s.unknown_creep_speed_mm_s
+        if unseen <= s.stop_distance_mm:
+            if s.unknown_policy == "creep":
+                if u > creep:
+                    reasons.append(Reason.UNKNOWN_CREEP)
+                    caps.append(creep)
+            else:
+                reasons.append(Reason.UNKNOWN_STOP)
+                caps.append(0.0)
+        elif math.isfinite(unseen) and s.unknown_policy == "refuse":
+            # no slow zone (nothing is known to be there), but it must stop before it
+            cap = self._approach_cap(unseen - s.stop_distance_mm)
+            if u > cap:
+                reasons.append(Reason.UNKNOWN_AHEAD)
+                caps.append(cap)
+        if blind <= s.stop_distance_mm and u > creep:
+            reasons.append(Reason.UNKNOWN_CREEP)
+            caps.append(creep)
         if unknown > s.unknown_max_fraction and u > s.unknown_speed_mm_s:
             reasons.append(Reason.UNKNOWN_AHEAD)
             caps.append(s.unknown_speed_mm_s)
         scale = min(1.0, min(caps) / u)
         decision = SafetyDecision(
-            v_mm_s * scale, omega_rad_s * scale, scale, clearance, tuple(reasons)
+            v_mm_s * scale, omega_rad_s * scale, scale, clearance, _unique(reasons)
         )
         return self._report(decision, now_s)
+
+    def _approach_cap(self, room_mm: float) -> float:
+        """Speed cap (mm/s, fastest point) ``room_mm`` before the stop line: the time to reach it
+        at least ``approach_time_s``, braking before it possible at ``brake_decel_mm_s2``, and
+        never below ``approach_min_speed_mm_s`` (so the chair gets there)."""
+        s = self.settings
+        cap = min(room_mm / s.approach_time_s, math.sqrt(2.0 * s.brake_decel_mm_s2 * room_mm))
+        return max(
+            cap, min(s.approach_min_speed_mm_s, math.sqrt(2.0 * s.brake_decel_mm_s2 * room_mm))
+        )
 
     def _report(self, d: SafetyDecision, now_s: float) -> SafetyDecision:
         for r in d.reasons:

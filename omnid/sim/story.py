@@ -44,16 +44,16 @@ class Until:
     test: Callable[[Observation, Observation, int], str | None]
 
 
-def refused(reason: str) -> Until:
-    """A refusal naming ``reason`` recorded since the step began."""
+def refused(*reasons: str) -> Until:
+    """A refusal naming one of ``reasons`` recorded since the step began."""
 
     def test(now: Observation, start: Observation, n0: int) -> str | None:
         for t, text in now.refusals[n0:]:
-            if reason in text:
+            if any(reason in text for reason in reasons):
                 return f"t = {t:.2f} s: {text}"
         return None
 
-    return Until(f"refused ({reason})", test)
+    return Until(f"refused ({' or '.join(reasons)})", test)
 
 
 def past_x(x_mm: float) -> Until:
@@ -231,6 +231,12 @@ def demo_story(rear_mm: float = 750.0) -> ReactiveRider:
             Step("back away", moved(120.0), 6.0, stick=(-0.5, 0.0), settle_s=0.5),
             Step("turn right, towards the stairs", heading(-90.0), 15.0, head="right"),
             Step("forward towards the stairs", refused("dropoff_stop"), 25.0, head="forward"),
-            Step("turn right, towards box 3", refused("obstacle_stop"), 10.0, head="right"),
+            # box 3 beside it, the stairs' edge ahead: whichever the turn would reach first
+            Step(
+                "turn right, towards box 3",
+                refused("obstacle_stop", "dropoff_stop"),
+                10.0,
+                head="right",
+            ),
         )
     )

@@ -40,6 +40,7 @@ def test_topdown_picture_colours_cells_and_is_pure(tmp_path):
         xyz, np.zeros((1, 3, 3)), np.zeros((1, 4)), np.array([PointClass.OBSTACLE], np.uint8)
     )
     m.update(cloud, 0.0)
+    m.update(cloud, 0.0)  # an obstacle is believed when two captures in a row show it
     cell_px = 4
     img = render_topdown(m, cell_px=cell_px)
     g = m.grid.settings

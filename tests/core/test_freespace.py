@@ -34,6 +34,10 @@ def scene_cloud(scene: scenes.Scene, seed: int = 0, truth_classes: bool = False)
 
 
 def fresh(**kw) -> FreeSpaceMap:
+    """A map that believes one capture (the geometry tests); the shipped map asks two captures
+    in a row of an obstacle or a drop-off (tested below, and in test_map_evidence.py)."""
+    kw.setdefault("obstacle_confirm_captures", 1)
+    kw.setdefault("dropoff_confirm_captures", 1)
     return FreeSpaceMap(FreeSpaceSettings(**kw))
 
 
@@ -106,8 +110,12 @@ def test_many_small_moves_do_not_round_away():
 
 def test_region_beyond_a_dropoff_edge_is_never_free():
     sc = scenes.dropoff(MOUNT, distance_mm=1000.0)  # edge at robot x = 1300
-    m = fresh()
+    m = fresh(dropoff_confirm_captures=2)
     m.update(scene_cloud(sc), MOUNT.x_offset_mm)
+    # one capture: in doubt — not free, not yet a drop-off
+    doubt = m.state_at([[1330.0, 0.0], [1400.0, 0.0], [1450.0, 0.0], [1800.0, 0.0]])
+    assert np.all(doubt == CellState.UNKNOWN)
+    m.update(scene_cloud(sc, seed=1), MOUNT.x_offset_mm)  # the second capture confirms it
     xs = np.arange(1300.0, 2600.0, 20.0)
     for y in (-400.0, 0.0, 400.0):
         states = m.state_at(np.column_stack([xs, np.full_like(xs, y)]))
@@ -129,6 +137,7 @@ def test_deep_stairwell_reads_dropoff_all_the_way():
     sc = scenes.Scene("stairwell", World((), (pit,)), MOUNT)
     m = fresh()
     m.update(scene_cloud(sc), MOUNT.x_offset_mm)
+    m.update(scene_cloud(sc, seed=1), MOUNT.x_offset_mm)
     xs = np.arange(1110.0, 1700.0, 20.0)
     states = m.state_at(np.column_stack([xs, np.zeros_like(xs)]))
     assert np.all(states == CellState.DROPOFF)

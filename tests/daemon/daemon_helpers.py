@@ -54,7 +54,9 @@ class RecordingMap(OccupancyGrid):
         for state in (CellState.FREE, CellState.DROPOFF, CellState.OBSTACLE):
             self.mark(self.points[self.point_states == state], state)
 
-    def update(self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s=None) -> None:
+    def update(
+        self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s=None, source_mm=None
+    ) -> None:
         self.clouds.append(cloud)
         code = {
             PointClass.FLOOR: CellState.FREE,
@@ -72,6 +74,23 @@ class RecordingMap(OccupancyGrid):
         c, s = np.cos(dtheta_rad), np.sin(dtheta_rad)
         self.points = np.column_stack([c * x + s * y, -s * x + c * y])
         self._raster()
+
+
+class FreeFloor(OccupancyGrid):
+    """A map that holds free floor everywhere, whatever it is told: the chair has seen (or the
+    test says so) every cell around it, so that unseen space plays no part."""
+
+    def __init__(self, settings: GridSettings | None = None) -> None:
+        super().__init__(settings or GridSettings(resolution_mm=50.0))
+        self.states[:] = CellState.FREE
+
+    def update(
+        self, cloud: PointCloud, rig_x_offset_mm: float = 0.0, now_s=None, source_mm=None
+    ) -> None:
+        pass
+
+    def move(self, dx_mm: float, dy_mm: float, dtheta_rad: float) -> None:
+        pass
 
 
 def arm(core, t_s: float = -0.02) -> None:

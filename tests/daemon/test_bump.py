@@ -7,10 +7,9 @@ import math
 
 import numpy as np
 import pytest
-from daemon_helpers import Status, Stick, arm
+from daemon_helpers import FreeFloor, Status, Stick, arm
 
 from omnid.core.kinematics import MM_PER_CLOCK
-from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid
 from omnid.daemon.config import OmnidConfig
 from omnid.daemon.core import ControlCore
 from omnid.daemon.motion import MotionSettings, StallDetector
@@ -133,20 +132,6 @@ class Chair:
         self.seq += 1
         c = [math.floor(v / MM_PER_CLOCK) for v in self.travel]
         return Status(self.seq, c[0], c[1], False, 0, t)
-
-
-class FreeFloor(OccupancyGrid):
-    """A map that holds free floor everywhere, whatever it is told: the bump is unseen."""
-
-    def __init__(self, settings: GridSettings) -> None:
-        super().__init__(settings)
-        self.states[:] = CellState.FREE
-
-    def update(self, cloud, rig_x_offset_mm=0.0, now_s=None) -> None:
-        pass
-
-    def move(self, dx_mm: float, dy_mm: float, dtheta_rad: float) -> None:
-        pass
 
 
 def joystick_core() -> ControlCore:

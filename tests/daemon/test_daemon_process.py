@@ -47,6 +47,9 @@ def test_daemon_drives_through_pty_and_stops_on_sigterm(tmp_path: Path, emulator
         f"teleop:\n  socket_path: {teleop}\n"
         "perception:\n  enabled: false\n"
         "rider:\n  tilt:\n    enabled: false\n"
+        # nothing is ever seen: turning in place creeps into the unseen (refused under the
+        # shipped policy, refuse)
+        "safety:\n  unknown_policy: creep\n"
     )
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify_path = str(tmp_path / "notify.sock")

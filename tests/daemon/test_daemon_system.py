@@ -149,6 +149,9 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
 
             # head forward past the threshold for the dwell time → wheels turn forward (this
             # needs perception: a fresh cloud of free floor ahead)
+            # the head stays neutral a moment after calibration: the daemon must see it at rest
+            # once before it may drive (omnid.daemon.arming; a cycle's window was a race)
+            time.sleep(0.2)
             hold(gs, FORWARD)
             assert wait_for(lambda: forward(cu), 8.0) is not None, err_path.read_text()[-3000:]
             time.sleep(0.3)

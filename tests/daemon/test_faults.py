@@ -8,7 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from daemon_helpers import RecordingMap, Status, Tilt, arm
+from daemon_helpers import FreeFloor, Status, Tilt, arm
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -46,8 +46,7 @@ def make_core(**safety) -> ControlCore:
         ),
         safety=replace(d.safety, **safety),
     )
-    m = RecordingMap(cfg.freespace.grid)
-    m.states[:] = 1  # free everywhere
+    m = FreeFloor(cfg.freespace.grid)  # free everywhere, as far as the chair goes
     core = ControlCore(cfg, world_map=m)
     arm(core)
     return core
@@ -200,8 +199,7 @@ def test_rearm_follows_the_source_that_was_driving():
             tilt=TiltSettings(enabled=False), joystick=JoystickSettings(enabled=False)
         ),
     )
-    core = ControlCore(cfg, world_map=RecordingMap(cfg.freespace.grid))
-    core.map.states[:] = 1
+    core = ControlCore(cfg, world_map=FreeFloor(cfg.freespace.grid))
     t = 0.0
     ok = []
     for _ in range(30):
@@ -238,8 +236,7 @@ def test_a_head_tilted_when_the_daemon_starts_drives_only_after_a_rest():
             joystick=JoystickSettings(enabled=False),
         ),
     )
-    m = RecordingMap(cfg.freespace.grid)
-    m.states[:] = 1
+    m = FreeFloor(cfg.freespace.grid)
     r = Run(ControlCore(cfg, world_map=m))  # not armed: the first reading is already tilted
     r.head = FORWARD
     assert not any(moving(c) for c in r.cycles(1.5))

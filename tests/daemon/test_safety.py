@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -111,9 +112,64 @@ def test_obstacle_under_own_footprint_is_ignored():
     assert SafetyLayer(S).check(g, 200.0, 0.0, 0.1).scale == 1.0
 
 
-def test_unknown_ahead_slows():
-    g = OccupancyGrid(GridSettings(resolution_mm=25.0))  # all unknown
-    d = SafetyLayer(S).check(g, 250.0, 0.0, perception_age_s=0.1)
+def seen_around(g: OccupancyGrid, x0: float, x1: float, y0: float, y1: float) -> OccupancyGrid:
+    """``g`` with the robot-frame rectangle [x0, x1] × [y0, y1] FREE (seen or driven over)."""
+    xs, ys = g.cell_centers()
+    g.states[np.ix_((xs >= x0) & (xs <= x1), (ys >= y0) & (ys <= y1))] = CellState.FREE
+    return g
+
+
+def unseen() -> OccupancyGrid:
+    """Start-up: nothing seen but the cells under the chair (its own, FREE)."""
+    g = OccupancyGrid(GridSettings(resolution_mm=25.0))
+    return seen_around(g, -S.footprint_rear_mm, S.footprint_front_mm, -300.0, 300.0)
+
+
+def test_unseen_space_is_not_free_tail_reverse_and_arcs_are_refused():
+    layer = SafetyLayer(S)
+    for v, w in [(-100.0, 0.0), (0.0, 0.5), (0.0, -0.5), (200.0, 0.4), (-80.0, 0.3)]:
+        d = layer.check(unseen(), v, w, perception_age_s=0.1)
+        assert d.stopped and Reason.UNKNOWN_STOP in d.reasons, (v, w, d)
+
+
+def test_straight_ahead_the_laser_cannot_see_the_footrests_band_it_is_crossed_at_creep():
+    d = SafetyLayer(S).check(unseen(), 250.0, 0.0, perception_age_s=0.1)
+    assert not d.stopped and Reason.UNKNOWN_CREEP in d.reasons
+    assert d.v_mm_s <= S.unknown_creep_speed_mm_s + 1e-9
+    # once the band has been seen, forward is free up to what was seen
+    g = seen_around(unseen(), 300.0, 3000.0, -800.0, 800.0)
+    assert SafetyLayer(S).check(g, 250.0, 0.0, perception_age_s=0.1).scale == 1.0
+
+
+def test_the_creep_policy_crosses_unseen_space_slowly():
+    layer = SafetyLayer(dataclasses.replace(S, unknown_policy="creep"))
+    for v, w in [(-100.0, 0.0), (0.0, 0.5)]:
+        d = layer.check(unseen(), v, w, perception_age_s=0.1)
+        assert not d.stopped and Reason.UNKNOWN_CREEP in d.reasons
+        u = abs(d.v_mm_s) + abs(d.omega_rad_s) * layer.r_max_mm
+        assert u <= S.unknown_creep_speed_mm_s + 1e-6
+
+
+def test_the_trail_behind_is_seen_reversing_slows_to_stop_before_the_unseen():
+    # the chair came 1 m forward: its trail (plus what the laser saw beside it) is free
+    g = seen_around(unseen(), -S.footprint_rear_mm - 1000.0, 3000.0, -800.0, 800.0)
+    layer = SafetyLayer(S)
+    assert layer.check(g, -100.0, 0.0, perception_age_s=0.1).scale == 1.0
+    # 100 mm from the stop line before unseen space: it may only go as fast as it can stop
+    g2 = seen_around(unseen(), -S.footprint_rear_mm - 250.0, 3000.0, -800.0, 800.0)
+    d = layer.check(g2, -100.0, 0.0, perception_age_s=0.1)
+    assert Reason.UNKNOWN_AHEAD in d.reasons and 0.0 < abs(d.v_mm_s) < 100.0
+
+
+def test_unknown_fraction_ahead_slows():
+    # with the creep policy, unseen space beyond the stop line slows the chair by its share of
+    # the swept cells (the refuse policy's approach cap does more: tested above)
+    g = OccupancyGrid(GridSettings(resolution_mm=25.0))
+    g.states[:] = CellState.FREE
+    xs, ys = g.cell_centers()
+    g.states[np.ix_(xs > 700, np.abs(ys) < 2000)] = CellState.UNKNOWN
+    layer = SafetyLayer(dataclasses.replace(S, unknown_policy="creep"))
+    d = layer.check(g, 250.0, 0.0, perception_age_s=0.1)
     assert d.reasons == (Reason.UNKNOWN_AHEAD,)
     assert d.v_mm_s == pytest.approx(S.unknown_speed_mm_s)
 
@@ -195,7 +251,9 @@ def test_fast_sweep_agrees_with_the_sampled_reference_sweep():
             looser += fast[0] > ref[0] + 25.0
             if abs(fast[0] - ref[0]) <= 50.0:
                 assert fast[1] is ref[1], (v, w, fast, ref)
-        if min(fast[0], ref[0]) > 300.0:  # enough swept cells for a fraction
+        u = abs(v) + abs(w) * layer.r_max_mm
+        if min(fast[0], ref[0]) > 300.0 and u > layer.settings.unknown_speed_mm_s:
+            # enough swept cells for a fraction, and fast enough for it to cap anything
             assert abs(fast[2] - ref[2]) <= 0.3, (v, w, fast, ref)
     assert n > 100 and looser <= 0.03 * n
 

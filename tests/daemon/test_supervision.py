@@ -74,6 +74,9 @@ def test_supervised_loop_zero_on_exception_stall_and_death(tmp_path: Path) -> No
         f"teleop:\n  socket_path: {teleop}\n"
         "perception:\n  enabled: false\n"
         "rider:\n  tilt:\n    enabled: false\n"
+        # nothing is ever seen: turning in place creeps into the unseen (refused under the
+        # shipped policy, refuse)
+        "safety:\n  unknown_policy: creep\n"
     )
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(tmp_path / "notify.sock"))

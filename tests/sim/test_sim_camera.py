@@ -109,7 +109,9 @@ def test_stream_capture_in_the_closed_loop_at_full_speed(seed):
         return cloud
 
     sim.perceive_job = checked  # type: ignore[method-assign]
-    r = sim.run(4.0)
+    # from start-up the chair creeps 250 mm (60 mm/s) through the band the laser cannot see
+    # ahead of the footrests (safety.front_blind_mm), then speeds up: full speed from ~5 s
+    r = sim.run(6.0)
     assert r.timings["clouds_per_s"] >= 15.0 and r.perception_errors == []
-    assert r.contacts == [] and r.max_speed_between(3.0, 4.0) > 220.0
+    assert r.contacts == [] and r.max_speed_between(5.0, 6.0) > 220.0
     assert sum(false_in_path) / len(false_in_path) < 0.05

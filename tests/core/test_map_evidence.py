@@ -1,0 +1,168 @@
+"""What the map believes: the chair's trail, forgetting by travel, drop-offs and obstacles that
+need evidence, exact obstacle points for the sweep, and rays that carve phantoms away."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from omnid.core.classify import with_classes
+from omnid.core.freespace import FreeSpaceMap, FreeSpaceSettings, classified
+from omnid.core.geometry import StereoRig
+from omnid.core.occupancy import CellState
+from omnid.core.types import PointClass, PointCloud
+from omnid.sim.laser import ideal_lattice
+from omnid.sim.world import Box, DropOff, RigMount, World, cast_laser, observe
+
+RIG = StereoRig.nominal()
+LASER = ideal_lattice()
+MOUNT = RigMount(x_offset_mm=300.0, height_mm=1100.0)
+H = MOUNT.height_mm
+
+
+def capture(world: World, seed: int = 0, pose=(0.0, 0.0, 0.0)) -> PointCloud:
+    hits = cast_laser(world, pose, MOUNT, LASER, RIG)
+    cloud, _truth = observe(hits, RIG, 0.2, seed, H)
+    return with_classes(cloud)
+
+
+def points(xyz, classes) -> PointCloud:
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    n = len(xyz)
+    return PointCloud(
+        xyz=xyz,
+        cov=np.broadcast_to(np.eye(3) * 4.0, (n, 3, 3)).copy(),
+        pixels=np.zeros((n, 4)),
+        classes=np.asarray(classes, np.uint8),
+        floor_depth_mm=H,
+    )
+
+
+def test_the_trail_is_free_and_nothing_else_is_at_start_up():
+    m = FreeSpaceMap()
+    assert m.occupy(-750.0, 350.0, -350.0, 350.0) > 0
+    inside = np.array([[x, y] for x in range(-725, 350, 50) for y in range(-325, 350, 50)])
+    assert np.all(m.state_at(inside) == CellState.FREE)
+    beside = np.array([[0.0, 400.0], [0.0, -400.0], [-800.0, 0.0], [400.0, 0.0]])
+    assert np.all(m.state_at(beside) == CellState.UNKNOWN)
+    # a remembered obstacle under the footprint stays (the trail only claims the unseen)
+    m.update(points([[200.0, 0.0, H - 300.0]] * 3, [PointClass.OBSTACLE] * 3), 0.0)
+    m.update(points([[200.0, 0.0, H - 300.0]] * 3, [PointClass.OBSTACLE] * 3), 0.0)
+    m.move(10.0, 0.0, 0.0)
+    m.occupy(-750.0, 350.0, -350.0, 350.0)
+    assert m.state_at([[190.0, 0.0]])[0] == CellState.OBSTACLE
+    # the trail follows the chair
+    m.move(500.0, 0.0, 0.0)
+    m.occupy(-750.0, 350.0, -350.0, 350.0)
+    assert m.state_at([[300.0, 0.0]])[0] == CellState.FREE
+
+
+def test_remembered_cells_are_forgotten_after_the_travel_odometry_can_hold():
+    m = FreeSpaceMap(FreeSpaceSettings(forget_after_travel_mm=3000.0))
+    box = Box(1300.0, 1550.0, -200.0, 200.0, 250.0)
+    cloud = capture(World((box,)))
+    m.update(cloud, MOUNT.x_offset_mm)
+    m.update(capture(World((box,)), seed=1), MOUNT.x_offset_mm)
+    assert m.state_at([[1400.0, 0.0]])[0] == CellState.OBSTACLE
+    for _ in range(20):  # 2 m forward and back twice: 4 m of travel, the box never seen again
+        m.move(100.0 if _ % 10 < 5 else -100.0, 0.0, 0.0)
+    m.update(PointCloud(floor_depth_mm=H), MOUNT.x_offset_mm)
+    assert m.state_at([[1400.0, 0.0]])[0] == CellState.OBSTACLE  # 2 m: kept
+    for _ in range(20):
+        m.move(100.0 if _ % 10 < 5 else -100.0, 0.0, 0.0)
+    m.update(PointCloud(floor_depth_mm=H), MOUNT.x_offset_mm)
+    assert m.state_at([[1400.0, 0.0]])[0] == CellState.UNKNOWN  # 4 m: forgotten, not free
+
+
+def test_an_obstacle_or_a_drop_off_needs_two_captures_in_a_row():
+    box = Box(1300.0, 1550.0, -200.0, 200.0, 250.0)
+    stairs = DropOff(1800.0, 4000.0, -3000.0, 3000.0, 170.0)
+    world = World((box,), (stairs,))
+    m = FreeSpaceMap()
+    m.update(capture(world), MOUNT.x_offset_mm)
+    probe = [[1400.0, 0.0], [2300.0, 600.0]]
+    assert list(m.state_at(probe)) == [CellState.UNKNOWN, CellState.UNKNOWN]  # in doubt
+    assert m.state_at([[1000.0, 0.0]])[0] == CellState.FREE
+    m.update(capture(world, seed=1), MOUNT.x_offset_mm)
+    assert list(m.state_at(probe)) == [CellState.OBSTACLE, CellState.DROPOFF]
+
+
+def test_a_lone_drop_off_dot_is_no_evidence_a_consistent_cluster_is():
+    floor = capture(World())
+    m = FreeSpaceMap(FreeSpaceSettings(dropoff_confirm_captures=1))
+    # one dot far below the floor among floor dots: a wrong pairing, not a hole
+    xyz = floor.xyz.copy()
+    cls = floor.classes.copy()
+    k = int(np.argmin(np.abs(xyz[:, 0] - 1000.0) + np.abs(xyz[:, 1])))
+    xyz[k] *= 1.3  # along its ray, 330 mm below the floor
+    cls[k] = PointClass.DROPOFF
+    m.update(classified(floor.__class__(xyz, floor.cov, floor.pixels, cls, H), cls), 300.0)
+    assert not np.any(m.grid.states == CellState.DROPOFF)
+    # a real edge: every dot beyond it lowered by 170 mm, consistently
+    stairs = DropOff(1700.0, 4000.0, -3000.0, 3000.0, 170.0)
+    m.update(capture(World((), (stairs,))), MOUNT.x_offset_mm)
+    assert m.state_at([[2200.0, 0.0]])[0] == CellState.DROPOFF
+
+
+def test_a_lowered_dot_whose_ray_crossed_seen_floor_is_a_contradiction():
+    floor = capture(World())
+    xyz, cls = floor.xyz.copy(), floor.classes.copy()
+    # a consistent little cluster of lowered dots whose rays cross floor level in the middle of
+    # the floor this very capture saw: impossible, dropped
+    near = np.flatnonzero((np.abs(xyz[:, 0] - 1400.0) < 120) & (np.abs(xyz[:, 1]) < 120))
+    assert len(near) >= 3
+    xyz[near] *= 1.36  # 400 mm below floor level, each along its own ray
+    cls[near] = PointClass.DROPOFF
+    m = FreeSpaceMap(FreeSpaceSettings(dropoff_confirm_captures=1))
+    cloud = floor.__class__(xyz, floor.cov, floor.pixels, cls, H)
+    m.update(cloud, MOUNT.x_offset_mm)
+    assert not np.any(m.grid.states == CellState.DROPOFF)
+
+
+def test_blocking_evidence_gives_the_seen_obstacle_points_exactly():
+    wall = Box(1500.0, 1600.0, -2000.0, 2000.0, 1000.0)  # robot x 1500: its face
+    m = FreeSpaceMap()
+    for seed in (0, 1):
+        m.update(capture(World((wall,)), seed=seed), MOUNT.x_offset_mm)
+    xy, grow, drop = m.blocking_evidence()
+    exact = grow == 0.0
+    assert exact.sum() > 10 and not np.any(drop)
+    # the points lie on the face (to the triangulation noise), not on cell centres
+    face = xy[exact]
+    assert np.all(np.abs(face[:, 0] - 1500.0) < 40.0)
+    assert len(np.unique(np.round(face[:, 0]))) > 20  # not quantised to cells
+    # moved exactly with the chair (no resampling): 237 mm forward and 0.3 rad left
+    m.move(237.0, 0.0, 0.0)
+    m.move(0.0, 0.0, 0.3)
+    xy2, grow2, _ = m.blocking_evidence()
+    back = xy2[grow2 == 0.0]
+    c, s = math.cos(0.3), math.sin(0.3)
+    world_x = 237.0 + c * back[:, 0] - s * back[:, 1]
+    assert np.all(np.abs(world_x - 1500.0) < 40.0)
+    # and through a re-anchoring
+    for _ in range(12):
+        m.move(100.0, 0.0, 0.0)
+    assert np.all(m.grid.states.shape)  # resampled grid still there
+    # kept (one per 10 mm lattice site: a re-anchored lattice may merge a few neighbours)
+    assert len(m.obstacle_points) >= 0.9 * len(face)
+
+
+def test_a_ray_through_a_kept_phantom_carves_it_a_real_box_stays():
+    m = FreeSpaceMap(FreeSpaceSettings(obstacle_confirm_captures=1))
+    # a phantom: one dot on a ray of the lattice, half way to the floor
+    floor = capture(World())
+    k = int(np.argmin(np.abs(floor.xyz[:, 0] - 1100.0) + np.abs(floor.xyz[:, 1])))
+    phantom = floor.xyz[k] * 0.5
+    m.update(points([phantom], [PointClass.OBSTACLE]), MOUNT.x_offset_mm)
+    spot = [[phantom[0] + MOUNT.x_offset_mm, -phantom[1]]]
+    assert m.state_at(spot)[0] == CellState.OBSTACLE
+    m.update(floor, MOUNT.x_offset_mm)  # that ray reached the floor: it passed right through
+    assert m.state_at(spot)[0] != CellState.OBSTACLE
+    assert len(m.obstacle_points) == 0
+    # a real box: the rays that reach it end on it, none passes through its points
+    box = Box(1300.0, 1550.0, -200.0, 200.0, 250.0)
+    for seed in range(3):
+        m.update(capture(World((box,)), seed=seed), MOUNT.x_offset_mm)
+    assert m.state_at([[1310.0, 0.0]])[0] == CellState.OBSTACLE
+    assert len(m.obstacle_points) > 5
