@@ -124,7 +124,9 @@ def _approach(ex, n_rigs: int, args: argparse.Namespace) -> int:
     t_all = time.perf_counter()
     scores = []
     print(f"omnid from {Path(omnid.__file__).resolve().parent.parent}")
-    print("| rig | kind | clouds | points | wrong pairs | phantom points | rows | worst cloud (at mm) |")
+    print(
+        "| rig | kind | clouds | points | wrong pairs | phantom points | rows | worst cloud (at mm) |"
+    )
     print("|---:|---|---:|---:|---:|---:|---:|---|")
     for r in range(n_rigs):
         case = ex.rig_case(r, args.seed)
