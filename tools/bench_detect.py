@@ -18,6 +18,7 @@ printed (the machine may be shared: prefer the mins and the same-run ratios).
 
 Run from the repository root (``pip install -e '.[test,bench]'``):
     python tools/bench_detect.py [--draws 10] [--repeats 30] [--before REV] [--no-oracle]
+                                 [--learned-shape]
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from omnid.core.detect import DetectionParams, detect_dots, to_gray  # noqa: E402
+from omnid.core.detect import DetectionParams, _detect_best, detect_dots, to_gray  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
 from omnid.experiments import detection  # noqa: E402
 from omnid.sim.laser import ideal_lattice  # noqa: E402
@@ -304,6 +305,11 @@ def main() -> int:
     ap.add_argument("--before", default=DEFAULT_BEFORE, help="git revision to compare with")
     ap.add_argument("--no-oracle", action="store_true", help="skip the slow direct transcription")
     ap.add_argument("--no-trackpy", action="store_true")
+    ap.add_argument(
+        "--learned-shape",
+        action="store_true",
+        help="also score best with the experimental learned-shape joint fit (omnid.core.spotshape)",
+    )
     args = ap.parse_args()
     cv2.setNumThreads(1)
     print(
@@ -326,7 +332,12 @@ def main() -> int:
         else:
             trackpy = trackpy_detector(minmass)
             print(f"trackpy: diameter 7, separation 5, minmass {minmass:g} (tuned on case 99)")
-    spot_models(args.draws, detectors, args.trackpy_draws, trackpy)
+    spot_detectors = dict(detectors)
+    if args.learned_shape:
+        spot_detectors["learned shape"] = lambda m, b: _detect_best(
+            m, b, DetectionParams(), learned_shape=True
+        )
+    spot_models(args.draws, spot_detectors, args.trackpy_draws, trackpy)
     standard_scene(args.repeats, detectors, trackpy)
     if not args.no_oracle:
         oracle_check(args.repeats)

@@ -51,7 +51,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from omnid.config import Settings, require, setting
-from omnid.core import spotfit
+from omnid.core import spotfit, spotshape
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -550,7 +550,9 @@ def _clipped_sigma(
     return float(np.clip(np.median(s), lo, hi))
 
 
-def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np.float64]:
+def _detect_best(
+    mask: NDArray, base: NDArray, p: DetectionParams, learned_shape: bool = False
+) -> NDArray[np.float64]:
     """Sub-pixel dot centres.
 
     1. gray: the laser's channel combination (``bgr_weights``), signed base − mask;
@@ -744,6 +746,20 @@ def _detect_best(mask: NDArray, base: NDArray, p: DetectionParams) -> NDArray[np
         moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5
         moved &= fs < 0.999 * spotfit.window_half_px(sigma) / 2.0
         r[k[moved]], c[k[moved]] = fr[moved], fc[moved]
+    if learned_shape and sigma > _FIT_ALL_FROM_PX:
+        # Experimental (not the default; docs/benchmarks/detection.md): every dot refitted
+        # with the profile learned from the image's isolated dots, jointly with its neighbours.
+        valid = None if saturated is None else ~saturated
+        r, c, *_ = spotshape.fit_dots(
+            sub,
+            valid,
+            r,
+            c,
+            centre * spread2 / (sigma * sigma),
+            sigma,
+            noise,
+            spotfit.window_half_px(sigma),
+        )
     if cut.any():
         k = np.flatnonzero(cut)
         r[k], c[k] = _refine(d, top_rows[k], top_cols[k])
