@@ -138,6 +138,8 @@ class DaemonBench:
             config["perception"] = {"calibration_path": str(calib)}
         else:
             config["perception"] = {"enabled": False}
+            # nothing is ever seen: turning in place sweeps unknown space, allowed at creep speed
+            config["safety"] = {"unknown_policy": "creep"}
         _merge(config, extra or {})
         self.config = self.dir / "omnid.yaml"
         self.config.write_text(yaml.safe_dump(config))

@@ -256,8 +256,7 @@ def test_the_neutral_pose_calibration_counts_as_the_head_seen_at_rest():
             joystick=JoystickSettings(enabled=False),
         ),
     )
-    m = FreeFloor(cfg.freespace.grid)
-    r = Run(ControlCore(cfg, world_map=m))
+    r = Run(ControlCore(cfg, world_map=FreeFloor(cfg.freespace.grid)))
     r.head = NEUTRAL
     r.cycles(0.22)  # the calibration's last reading; the next one is already tilted
     assert r.core.mux.tilt.calibrated
