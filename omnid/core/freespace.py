@@ -212,7 +212,6 @@ class FreeSpaceMap:
         self.version = 0  # counts changes of the stored cells and points
         self._grid: OccupancyGrid | None = None
         self._strips: _Strips | None = None  # the last capture's lattice strips
-        self._obstacle_tri = np.zeros((0, 3), dtype=np.intp)  # the last fill's obstacle triangles
         self._evidence: tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
         self._evidence = (-1, np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
         self._occupied: tuple[float, float, float] | None = None  # pose of the last occupy
@@ -357,11 +356,7 @@ class FreeSpaceMap:
             obstacle_xyh = np.column_stack([xy[is_obstacle], H - xyz[is_obstacle, 2]])
             xy = np.vstack([xy, xy0])
             cls = np.concatenate([cls, np.full(len(xy0), PointClass.DROPOFF, np.uint8)])
-            self._obstacle_tri = np.zeros((0, 3), dtype=np.intp)
             obs, direct_free, (r0, c0) = self._observation(xy, cls, cv2, segments, xyz, low, n_dots)
-            # the filled obstacle triangles' edges are obstacle surface too (between two dots of
-            # one face): kept as points, so that the cells they fill are exact as well
-            obstacle_xyh = np.vstack([obstacle_xyh, self._edge_points(xy, xyz, H)])
             # The observation covers only a window of the anchor grid (the cloud's bounding
             # box); the memory rules below work on that window.
             win = (slice(r0, r0 + obs.shape[0]), slice(c0, c0 + obs.shape[1]))
@@ -537,29 +532,6 @@ class FreeSpaceMap:
             same = np.abs(depth_mm[idx, None] - depth_mm[None, cand]) <= tol
             out[idx] = ((d2 <= reach * reach) & same).sum(axis=1) >= need  # itself included
         return out
-
-    def _edge_points(
-        self, xy: NDArray[np.float64], xyz: NDArray[np.float64], floor_depth_mm: float
-    ) -> NDArray[np.float64]:
-        """Points (M, 3: anchor x, y, height) every ``2 · point_spacing_mm`` along the edges of
-        the last fill's obstacle triangles (dots of one face or top, edges ≤
-        ``obstacle_max_edge_mm``)."""
-        tri = self._obstacle_tri
-        if len(tri) == 0:
-            return np.zeros((0, 3))
-        a = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])
-        b = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
-        pairs = np.unique(np.sort(np.column_stack([a, b]), axis=1), axis=0)
-        a, b = pairs[:, 0], pairs[:, 1]
-        length = np.hypot(*(xy[b] - xy[a]).T)
-        step = 2.0 * self.settings.point_spacing_mm
-        n = np.maximum(np.ceil(length / step).astype(np.intp), 1)
-        k = np.repeat(np.arange(len(a)), n)
-        t = (np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(n, n)
-        pa, pb = xy[a[k]], xy[b[k]]
-        ha, hb = floor_depth_mm - xyz[a[k], 2], floor_depth_mm - xyz[b[k], 2]
-        t2 = t[:, None]
-        return np.column_stack([pa + t2 * (pb - pa), ha + t * (hb - ha)])
 
     def _add_points(self, xyh_anchor: NDArray[np.float64]) -> None:
         """Keep new obstacle dots (anchor x, y and height, mm) as exact evidence. A cell keeps
@@ -875,7 +847,6 @@ class FreeSpaceMap:
         value[free_t] = CellState.FREE
         value[drop_t] = CellState.DROPOFF
         value[obst_t] = CellState.OBSTACLE
-        self._obstacle_tri = strips.tri[obst_t]
         free, drop, obst = int(CellState.FREE), int(CellState.DROPOFF), int(CellState.OBSTACLE)
         fixed = _fixed_point(pix)
         if len(where_low) == 0:
@@ -919,7 +890,6 @@ class FreeSpaceMap:
         free_t = all_floor & (edges <= st.free_max_edge_mm)
         drop_t = any_drop & ~any_obst & (edges <= st.dropoff_max_edge_mm)
         obst_t = np.all(tcls == PointClass.OBSTACLE, axis=1) & (edges <= st.obstacle_max_edge_mm)
-        self._obstacle_tri = idx[obst_t]
         for use, state in (
             (free_t, CellState.FREE),
             (drop_t, CellState.DROPOFF),
