@@ -112,7 +112,11 @@ def tune_trackpy() -> float:
 
 
 def spot_models(
-    draws: int, detectors: dict[str, Detector], trackpy_draws: int, trackpy: Detector | None
+    draws: int,
+    detectors: dict[str, Detector],
+    trackpy_draws: int,
+    trackpy: Detector | None,
+    bound_dots: int = 40,
 ) -> None:
     """Section 1: per family, every detector on the same cases."""
     names = [*detectors, *(["trackpy"] if trackpy is not None else [])]
@@ -130,13 +134,17 @@ def spot_models(
         "model's own isolated spots (speckle grains on the dot and in its halo; 0 without "
         "grains), median over the cases; 'no grains' is best on the same cases rendered "
         "without grains (sensor noise and neighbours only); 'ref' = floor ⊕ no grains per "
-        "case (an estimate of what a detector can reach, not a bound)."
+        "case (an estimate of what a detector can reach, not a bound); 'CRLB' is the "
+        "Cramér–Rao lower bound of the centre error from the rendered spot model, the noise, "
+        "the pixel integration, clipping and the grains (omnid.experiments.detection."
+        "centre_bound_px), as an RMS over --bound-dots isolated dots per camera."
     )
     head = f"   {'family':10s} {'detector':12s} {'pooled':>7s} {'median':>7s} {'worst':>7s} "
     print(head + f"{'recall':>7s} {'FP':>5s} {'floor':>6s} {'ms':>6s}")
     pooled: dict[str, list[float]] = {n: [] for n in names}
     every_case: dict[str, list[float]] = {n: [] for n in names}
     reference: list[float] = []
+    bound: list[float] = []
     for kind in SPOT_KINDS:
         cases = [detection.case(kind, k) for k in range(draws)]
         floors = [detection.spot_floor_px(c.spots, c.rig.cam1, 7) for c in cases]
@@ -191,12 +199,26 @@ def spot_models(
             f"   {kind:10s} {'  no grains':12s} {'':>7s} {np.nanmedian(clean):7.3f} {np.nanmax(clean):7.3f}   ref: median case "
             f"{np.nanmedian(ref):.3f}, worst {np.nanmax(ref):.3f}"
         )
+        crlb = [detection.bound_rms_px(cs, bound_dots) for cs in cases]
+        bound += crlb
+        best_rms = [detection.pooled_rms(c) for c in results["best"]]
+        excess = [m / b for m, b in zip(best_rms, crlb, strict=True)]
+        gap = [float(np.sqrt(max(m * m - b * b, 0.0))) for m, b in zip(best_rms, crlb, strict=True)]
+        print(
+            f"   {kind:10s} {'  CRLB':12s} {'':>7s} {np.nanmedian(crlb):7.3f} {np.nanmax(crlb):7.3f}   "
+            f"best/CRLB median {np.nanmedian(excess):.2f}x, worst {np.nanmax(excess):.2f}x; "
+            f"excess √(best²−CRLB²) median {np.nanmedian(gap):.3f}, worst {np.nanmax(gap):.3f}"
+        )
+        print(
+            "     per case (best / CRLB): "
+            + ", ".join(f"{m:.3f}/{b:.3f}" for m, b in zip(best_rms, crlb, strict=True))
+        )
     print("   over the families (pooled RMS per family):")
     for name, values in pooled.items():
         v = np.asarray(values)
         print(f"     {name:12s} median {np.nanmedian(v):.3f} px, worst {np.nanmax(v):.3f} px")
     print("   over every case (one spot model each): median, worst decile (90th pct), worst")
-    for name, values in [*every_case.items(), ("ref (best)", reference)]:
+    for name, values in [*every_case.items(), ("ref (best)", reference), ("CRLB", bound)]:
         v = np.asarray(values)
         print(
             f"     {name:12s} median {np.nanmedian(v):.3f} px, worst decile "
@@ -306,6 +328,9 @@ def main() -> int:
     ap.add_argument("--no-oracle", action="store_true", help="skip the slow direct transcription")
     ap.add_argument("--no-trackpy", action="store_true")
     ap.add_argument(
+        "--bound-dots", type=int, default=40, help="isolated dots per camera for the CRLB"
+    )
+    ap.add_argument(
         "--learned-shape",
         action="store_true",
         help="also score best with the experimental learned-shape joint fit (omnid.core.spotshape)",
@@ -337,7 +362,7 @@ def main() -> int:
         spot_detectors["learned shape"] = lambda m, b: _detect_best(
             m, b, DetectionParams(), learned_shape=True
         )
-    spot_models(args.draws, spot_detectors, args.trackpy_draws, trackpy)
+    spot_models(args.draws, spot_detectors, args.trackpy_draws, trackpy, args.bound_dots)
     standard_scene(args.repeats, detectors, trackpy)
     if not args.no_oracle:
         oracle_check(args.repeats)

@@ -1,16 +1,21 @@
 """Benchmark: the whole ``best`` perception of one 640x480 stereo capture on ONE core.
 
 ``pipeline.perceive(capture, calib, "best")`` = subtract + detect (both cameras), match,
-triangulate, classify; the goal of issue 2 is ≤ 10 ms median. The capture is rendered
-(``RenderOptions.realistic()``: read + shot noise, 3 % flicker, speckled halos, ghosts) from
-``ideal_lattice(30, 35, 0.07, 0.28)`` (``--laser ideal``) or a dense physical projector (default),
-on the floor (1100 mm) with a 300 mm high box top in front. The calibration comes from a
-rendered capture of the empty floor (``calibrate_from_capture``, another seed), so the run is
-end to end. Everything runs with cv2.setNumThreads(1) and one BLAS thread.
+triangulate, classify; the goals: ≤ 10 ms per frame pair (issue 11) and no slower than the
+thesis-era pipeline on the same captures (issue 9). Two lasers, each on the floor (1100 mm) with
+a 300 mm high box 800–1300 mm ahead: the default physical projector (``LaserProjector()``, ~190
+dots seen by both cameras) and a dense one (pitch 0.032 × 0.036, ~840 dots). Captures are rendered
+with ``RenderOptions.realistic()`` (read + shot noise, 3 % flicker, speckled halos, ghosts); the
+calibration comes from the simulated installer's captures (floor + extras, other seeds), so the
+run is end to end. Everything runs with cv2.setNumThreads(1) and one BLAS thread.
 
-Printed: min and median of each stage (each timed on its own, ``--repeats`` runs) and of the
-whole ``perceive``; the number of points and how many are right (within 1.5 px of a true dot in
-both images); the load average (the machine is shared: prefer the min, and the ratios).
+Printed per laser: median and p90 (and min) of each stage (each timed on its own over
+``--repeats`` runs) and of the whole ``perceive``, next to the same-run reference: the thesis
+pipeline (``perceive(..., "thesis")``) and, with ``--old-root DIR`` (a checkout of the thesis-era
+omnid, e.g. ``git archive 80b18a4 | tar -x -C DIR``), that checkout's ``best`` on the same
+captures (its own floor calibration, in a subprocess); the number of points and how many are
+right (within 1.5 px of a true dot in both images); the load average (the machine may be shared:
+prefer the ratios).
 
 Run from the repository root:  python tools/bench_perception_core.py [--repeats 50]
 """
@@ -25,85 +30,114 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import platform  # noqa: E402
-import statistics  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from omnid.core.calibration import calibrate_from_capture  # noqa: E402
 from omnid.core.classify import classify  # noqa: E402
 from omnid.core.detect import detect_dots  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
 from omnid.core.matching import match_dots  # noqa: E402
 from omnid.core.pipeline import perceive  # noqa: E402
 from omnid.core.triangulate import triangulate  # noqa: E402
-from omnid.core.types import PointCloud  # noqa: E402
-from omnid.sim.laser import LaserProjector, ideal_lattice  # noqa: E402
+from omnid.core.types import PointCloud, StereoCapture  # noqa: E402
+from omnid.sim.installation import calibrate_installed  # noqa: E402
+from omnid.sim.laser import LaserProjector  # noqa: E402
 from omnid.sim.render import RenderOptions, render_capture  # noqa: E402
 
 
-def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """(min, median) wall time of ``fn`` in ms over ``repeats`` runs after one warm-up."""
+def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float, float]:
+    """(min, median, p90) wall time of ``fn`` in ms over ``repeats`` runs after one warm-up."""
     fn()
     out = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
         out.append(time.perf_counter() - t0)
-    return 1e3 * min(out), 1e3 * statistics.median(out)
+    ms = 1e3 * np.array(out)
+    return float(ms.min()), float(np.median(ms)), float(np.percentile(ms, 90))
 
 
-def scene_xyz(rig: StereoRig, pattern: LaserProjector) -> np.ndarray:
-    """The pattern's dots on the floor, with a 300 mm high box top where 0.8 < X/Z < 1.2."""
-    sl = pattern.rays().slopes()
-    box = (sl[:, 0] > 0.8) & (sl[:, 0] < 1.2) & (np.abs(sl[:, 1]) < 0.3)
-    depth = np.where(box, rig.floor_depth_mm - 300.0, rig.floor_depth_mm)
-    return np.column_stack([sl * depth[:, None], depth])
+LASERS = {
+    "default": lambda: LaserProjector(),
+    "dense": lambda: LaserProjector(
+        pitch_u=0.032, pitch_v=0.036, orders_u=(-24, 24), orders_v=(-30, 30)
+    ),
+}
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeats", type=int, default=50)
-    ap.add_argument(
-        "--laser",
-        choices=["physical", "ideal"],
-        default="physical",
-        help="physical: a dense non-ideal projector (~850 dots); ideal: the old regular slope "
-        "lattice from the frame origin, ideal_lattice(30, 35, 0.07, 0.28) (the degenerate case)",
-    )
-    args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
+def scene(rig: StereoRig, laser: LaserProjector) -> np.ndarray:
+    """The laser's dots (seen by either camera) on the floor with a 300 mm high box ahead."""
+    from omnid.sim.world import Box, RigMount, World, cast_laser
+
+    m = RigMount(height_mm=rig.floor_depth_mm)
+    box = Box(m.x_offset_mm + 800, m.x_offset_mm + 1300, -400.0, 400.0, 300.0)
+    hits = cast_laser(World((box,)), (0.0, 0.0, 0.0), m, laser, rig)
+    return hits.xyz[hits.visible1 | hits.visible2]
+
+
+_OLD_BEST = """
+import os, sys, time, json
+for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[v] = "1"
+sys.path.insert(0, sys.argv[1])
+import cv2, numpy as np
+cv2.setNumThreads(1)
+from omnid.core.calibration import calibrate_from_capture
+from omnid.core.pipeline import perceive
+from omnid.core.types import StereoCapture
+z = np.load(sys.argv[2])
+cap = lambda p: StereoCapture(z[p + "m1"], z[p + "b1"], z[p + "m2"], z[p + "b2"])
+calib = calibrate_from_capture(cap("floor_"), float(z["H"]), float(z["B"]))
+c = cap("")
+perceive(c, calib, "best")
+out = []
+for _ in range(int(sys.argv[3])):
+    t0 = time.perf_counter(); cloud = perceive(c, calib, "best"); out.append(time.perf_counter() - t0)
+ms = 1e3 * np.array(out)
+print(json.dumps([float(ms.min()), float(np.median(ms)), float(np.percentile(ms, 90)), len(cloud.xyz)]))
+"""
+
+
+def old_best(
+    old_root: str, rig: StereoRig, floor: StereoCapture, cap: StereoCapture, repeats: int
+) -> tuple[float, float, float, int] | str:
+    """(min, median, p90 ms, points) of ``old_root``'s ``best`` on ``cap``, or why not."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "caps.npz")
+        arrays = {"H": np.array(rig.floor_depth_mm), "B": np.array(rig.baseline_mm)}
+        for prefix, c in (("floor_", floor), ("", cap)):
+            arrays.update(
+                {prefix + "m1": c.mask1, prefix + "b1": c.base1}
+                | {prefix + "m2": c.mask2, prefix + "b2": c.base2}
+            )
+        np.savez(path, **arrays)  # type: ignore[arg-type]
+        res = subprocess.run(
+            [sys.executable, "-c", _OLD_BEST, old_root, path, str(repeats)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+    if res.returncode != 0:
+        return (res.stderr.strip().splitlines() or ["failed"])[-1]
+    lo, med, p90, n = json.loads(res.stdout.strip().splitlines()[-1])
+    return lo, med, p90, int(n)
+
+
+def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
     rig = StereoRig.nominal()
     opts = RenderOptions.realistic()
-    if args.laser == "ideal":
-        pattern = ideal_lattice(30, 35, 0.07, 0.28)
-        xyz = scene_xyz(rig, pattern)
-        laser: object = pattern
-    else:
-        from omnid.sim.world import Box, RigMount, World, cast_laser
-
-        laser = LaserProjector(pitch_u=0.04, pitch_v=0.045, orders_u=(-16, 16), orders_v=(-22, 22))
-        m = RigMount(height_mm=rig.floor_depth_mm)
-        box = Box(m.x_offset_mm + 800, m.x_offset_mm + 1300, -400.0, 400.0, 300.0)
-        hits = cast_laser(World((box,)), (0.0, 0.0, 0.0), m, laser, rig)
-        xyz = hits.xyz[hits.visible1 | hits.visible2]
-    try:
-        from omnid.sim.installation import calibrate_installed
-    except ImportError:  # an older checkout: the floor alone
-        floor = render_capture(rig, laser.on_plane(rig.floor_depth_mm), opts, seed=99)  # type: ignore[attr-defined]
-        calib = calibrate_from_capture(floor, rig.floor_depth_mm, rig.baseline_mm)
-    else:
-        calib = calibrate_installed(rig, laser, seed=99, options=opts)
+    laser = LASERS[name]()
+    xyz = scene(rig, laser)
+    calib = calibrate_installed(rig, laser, seed=99, options=opts)
     cap = render_capture(rig, xyz, opts, seed=3)
-
-    print(
-        f"python {platform.python_version()}, numpy {np.__version__}, cv2 {cv2.__version__}, "
-        f"one core (cv2 threads {cv2.getNumThreads()}, BLAS threads 1), {platform.machine()}, "
-        f"{os.cpu_count()} CPUs"
-    )
-    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     cloud = perceive(cap, calib, "best")
     true_px = rig.project(xyz)
     d = np.hypot(
@@ -117,10 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     right = int(((d < 1.5) & (d2 < 1.5)).any(axis=1).sum())
     n_vis = int(rig.visible(true_px).sum())
     print(
-        f"dots cast {len(xyz)}; visible in both cameras {n_vis}; perceived points {len(cloud.xyz)}, "
-        f"right {right}"
+        f"\n## laser {name}: dots cast {len(xyz)}; visible in both cameras {n_vis}; "
+        f"perceived points {len(cloud.xyz)}, right {right}"
     )
-
     d1 = detect_dots(cap.mask1, cap.base1, "best")
     d2_ = detect_dots(cap.mask2, cap.base2, "best")
     pixels = match_dots(calib, d1, d2_, "best")
@@ -137,13 +170,46 @@ def main(argv: list[str] | None = None) -> int:
         ("match best", lambda: match_dots(calib, d1, d2_, "best")),
         ("triangulate best", lambda: triangulate(calib.rig, pixels, "best", 0.3)),
         ("classify", lambda: classify(pc)),
-        ("perceive(..., 'best') whole", lambda: perceive(cap, calib, "best")),
-        ("perceive(..., 'thesis') whole", lambda: perceive(cap, calib, "thesis")),
+        ("perceive best, whole", lambda: perceive(cap, calib, "best")),
+        ("perceive thesis, whole (ref)", lambda: perceive(cap, calib, "thesis")),
     ]
-    print(f"\n{'stage':32s} {'min ms':>8s} {'median ms':>10s}")
-    for name, fn in stages:
-        lo, med = timed(fn, args.repeats)
-        print(f"{name:32s} {lo:8.2f} {med:10.2f}")
+    print(f"{'stage':34s} {'min ms':>8s} {'median ms':>10s} {'p90 ms':>8s}")
+    whole: dict[str, float] = {}
+    for label, fn in stages:
+        lo, med, p90 = timed(fn, repeats)
+        whole[label] = med
+        print(f"{label:34s} {lo:8.2f} {med:10.2f} {p90:8.2f}")
+    ref = whole["perceive thesis, whole (ref)"]
+    best = whole["perceive best, whole"]
+    print(f"ratio thesis / best (median): {ref / best:.2f}")
+    if old_root:
+        floor = render_capture(rig, laser.on_plane(rig.floor_depth_mm), opts, seed=99)
+        old = old_best(old_root, rig, floor, cap, repeats)
+        if isinstance(old, str):
+            print(f"old best ({old_root}): not run: {old}")
+        else:
+            lo, med, p90, n = old
+            print(f"{'old best, whole (ref)':34s} {lo:8.2f} {med:10.2f} {p90:8.2f}  ({n} points)")
+            print(f"ratio old best / best (median): {med / best:.2f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=50)
+    ap.add_argument("--laser", choices=[*LASERS, "all"], default="all")
+    ap.add_argument(
+        "--old-root", default=None, help="also time this checkout's best (same captures)"
+    )
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(1)
+    print(
+        f"python {platform.python_version()}, numpy {np.__version__}, cv2 {cv2.__version__}, "
+        f"one core (cv2 threads {cv2.getNumThreads()}, BLAS threads 1), {platform.machine()}, "
+        f"{os.cpu_count()} CPUs"
+    )
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    for name in LASERS if args.laser == "all" else [args.laser]:
+        bench_laser(name, args.repeats, args.old_root)
     print(f"\nload average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 

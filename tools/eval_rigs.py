@@ -100,6 +100,12 @@ def main(argv: list[str] | None = None) -> int:
             for k, v in pooled.items()
         )
     )
+    n_clouds = sum(s.clouds for s in scores)
+    print(
+        f"not understood: {sum(s.not_understood for s in scores)} dots in {n_clouds} clouds; "
+        f"clouds withheld from the map (>= 3 such dots: the chair stops) "
+        f"{sum(s.clouds_withheld for s in scores)}"
+    )
     if cal_s:
         print(
             f"calibration: {len(cal_s)} of {n_rigs} rigs, median {sorted(cal_s)[len(cal_s) // 2]:.2f} s"

@@ -13,6 +13,15 @@ unit = emulator through the codec, rider through the joystick or GS311 emulator)
 
 Usage: ``python tools/safety_figures.py [--perception pipeline|truth] [--free-minutes M]``.
 Prints one table per measurement and the wall time each took.
+
+``--suite`` runs the safety scenario suite instead (:mod:`omnid.sim.suite`: a thin post, a
+threshold, a trench, a wall and an edge approached obliquely, turning beside seen and unseen
+walls, doorways 780–900 mm, a corridor, a wall at 150 mm, reversing into the unseen, dense
+clutter), each with both riders and ``--seeds`` seeds, and prints the safety table of
+docs/benchmarks.md, one row per scenario and rider::
+
+    python tools/safety_figures.py --suite --perception pipeline --seeds 4 --clutter-minutes 10
+    python tools/safety_figures.py --suite --set unknown_policy=creep --set escape_speed_mm_s=40
 """
 
 from __future__ import annotations
@@ -231,8 +240,89 @@ def fault_run(kind: str, perception: str, seed: int, rider: str) -> FaultRow:
     )  # fmt: skip
 
 
+# -- 4. the scenario suite -------------------------------------------------------------------
+
+
+def _median(xs: list[float]) -> float:
+    xs = [x for x in xs if not math.isnan(x)]
+    return float(np.median(xs)) if xs else math.nan
+
+
+def _fmt(x: float, unit: str = "", digits: int = 0) -> str:
+    if math.isnan(x):
+        return "—"
+    if math.isinf(x):
+        return "never"
+    return f"{x:.{digits}f}{unit}"
+
+
+def suite(args: argparse.Namespace) -> int:
+    """Run the scenario suite (module docstring) and print its table."""
+    from omnid.sim.suite import RIDERS, SCENARIOS, clutter, run_trial
+
+    changes: dict[str, object] = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        changes[key] = value if not value.replace(".", "", 1).replace("-", "", 1).isdigit() \
+            else float(value)  # fmt: skip
+    names = [n for n in SCENARIOS if not args.scenarios or n in args.scenarios.split(",")]
+    print(f"suite: {len(names)} scenarios x {len(RIDERS)} riders x {args.seeds} seeds, "
+          f"perception {args.perception}, safety changes {changes or 'none'}", flush=True)  # fmt: skip
+    print("| scenario | rider | runs | contacts | falls | false stops (unseen) | per 10 min "
+          "| closest (median, least) | stopped at | stop → standstill | hazard → first limit "
+          "(median, worst) | through (slowest in it) | wall |")  # fmt: skip
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    failed = False
+    w_all = time.perf_counter()
+    for name in names:
+        for rider in RIDERS:
+            rows = []
+            for seed in range(args.seeds):
+                if name == "dense clutter":
+                    trial = clutter(rider, seed, 60.0 * args.clutter_minutes)
+                else:
+                    trial = SCENARIOS[name](rider, seed)
+                rows.append(run_trial(trial, args.perception, changes))
+            minutes = sum(r.duration_s for r in rows) / 60.0
+            fs = sum(r.false_stops for r in rows)
+            fs_unseen = sum(r.false_stops_unseen for r in rows)
+            contacts = sum(r.contacts for r in rows)
+            falls = sum(r.falls for r in rows)
+            failed |= falls > 0
+            stops = [r.stop_clearance_mm for r in rows]
+            closest = [r.min_clearance_mm for r in rows]
+            lim = [r.hazard_to_limit_s for r in rows]
+            still = [r.stop_to_standstill_s for r in rows]
+            passed = [r for r in rows if r.passed is not None]
+            through = "—"
+            if passed:
+                slowest = [r.min_speed_in_opening_mm_s for r in passed if r.passed]
+                stood = sum(r.stood_in_opening for r in passed)
+                through = (f"{sum(bool(r.passed) for r in passed)}/{len(passed)} "
+                           f"({_fmt(min(slowest) if slowest else math.nan, ' mm/s')}"
+                           f"{f', stood in it {stood}x' if stood else ''})")  # fmt: skip
+            finite = [x for x in lim if math.isfinite(x)]
+            print(
+                f"| {name} | {rider} | {len(rows)} | {contacts} | {falls} "
+                f"| {fs} ({fs_unseen}) | {10.0 * fs / minutes:.1f} "
+                f"| {_fmt(_median(closest), ' mm')}, {_fmt(min(closest) if closest else math.nan, ' mm')} "
+                f"| {_fmt(_median(stops), ' mm')} "
+                f"| {_fmt(_median(still), ' s', 2)} "
+                f"| {_fmt(_median(lim), ' s', 2)}, {_fmt(max(finite) if finite else math.nan, ' s', 2)} "
+                f"| {through} | {sum(r.wall_s for r in rows):.0f} s |",
+                flush=True,
+            )  # fmt: skip
+    print(f"\ntotal wall time {time.perf_counter() - w_all:.0f} s")
+    return 1 if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
+    ap.add_argument("--suite", action="store_true", help="run the scenario suite (docstring)")
+    ap.add_argument("--seeds", type=int, default=3, help="suite: seeds per scenario and rider")
+    ap.add_argument("--scenarios", default="", help="suite: comma list of scenario names")
+    ap.add_argument("--clutter-minutes", type=float, default=10.0)
+    ap.add_argument("--set", action="append", default=[], help="suite: safety KEY=VALUE")
     ap.add_argument("--perception", choices=("pipeline", "truth"), default="pipeline")
     ap.add_argument("--fault-perception", choices=("pipeline", "truth"), default="pipeline")
     ap.add_argument("--free-minutes", type=float, default=3.0)
@@ -240,6 +330,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fractions", default="0.25,0.5,0.75,1.0")
     ap.add_argument("--skip", default="", help="comma list of stop,free,faults to skip")
     args = ap.parse_args(argv)
+    if args.suite:
+        import logging
+
+        logging.disable(logging.ERROR)
+        return suite(args)
     skip = set(filter(None, args.skip.split(",")))
     w_all = time.perf_counter()
     core = make_core()

@@ -372,6 +372,12 @@ class BeamTracks:
     x_order: NDArray[np.intp]  # beams sorted by floor X
     floor_x_sorted: NDArray[np.float64]
     floor_mm: NDArray[np.float64]  # (K, 3)
+    # the floor points binned in bands of Y (``_BAND_MM``), sorted by (band, X): one sorted
+    # key band·span + X per beam, so a disk's neighbours are a few short runs (_beams_near)
+    band_key_sorted: NDArray[np.float64]  # (K,)
+    band_order: NDArray[np.intp]  # (K,) beams in key order
+    x_rank: NDArray[np.intp]  # (K,) each beam's position in x_order
+    band_origin_mm: tuple[float, float, float]  # (min X, min Y, span) of the keys
 
     @classmethod
     def from_model(cls, rig: StereoRig, laser: LaserModel) -> BeamTracks:
@@ -382,7 +388,14 @@ class BeamTracks:
         beta = np.column_stack(
             [-f1 * c[:, 0], f1 * (c[:, 1] - y1), -f2 * c[:, 0], f2 * (c[:, 1] - y2)]
         )
-        order = np.argsort(laser.floor_mm[:, 0], kind="stable").astype(np.intp)
+        fl = np.asarray(laser.floor_mm, dtype=np.float64)
+        order = np.argsort(fl[:, 0], kind="stable").astype(np.intp)
+        x_rank = np.empty(len(order), np.intp)
+        x_rank[order] = np.arange(len(order))
+        x0, y0 = float(fl[:, 0].min()), float(fl[:, 1].min())
+        span = float(fl[:, 0].max()) - x0 + 3.0
+        key = np.floor((fl[:, 1] - y0) / _BAND_MM) * span + (fl[:, 0] - x0 + 1.0)
+        band_order = np.argsort(key, kind="stable").astype(np.intp)
         return cls(
             alpha,
             beta,
@@ -396,6 +409,10 @@ class BeamTracks:
             order,
             laser.floor_mm[order, 0],
             np.asarray(laser.floor_mm),
+            key[band_order],
+            band_order,
+            x_rank,
+            (x0, y0, span),
         )
 
     def slope_sigma(self, beam: NDArray[np.intp], u: NDArray[np.float64]) -> NDArray:
@@ -436,8 +453,9 @@ class TripleMatch:
     residual_px     (K,) rms residual per image coordinate of the fit, px
     sigma_px        (K,) the track's total 1-σ per coordinate (pixel noise and model), px
     candidates      triples considered (χ² under the gate)
-    components      conflict components solved; ``largest`` triples in the largest one;
-                    ``inexact`` components whose search hit its node limit (greedy result)
+    components      conflict components solved (a triple in every optimum counts as one);
+                    ``largest`` triples in the largest one left to a search; ``inexact``
+                    components whose search hit its node limit (greedy result)
     """
 
     i1: NDArray[np.intp]
@@ -461,14 +479,35 @@ def _empty_triples() -> TripleMatch:
 def _beams_near(
     tr: BeamTracks, xy: NDArray[np.float64], radius: NDArray[np.float64]
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """(query, beam) for every beam whose floor point lies within ``radius`` of ``xy``."""
-    lo = np.searchsorted(tr.floor_x_sorted, xy[:, 0] - radius, side="left")
-    hi = np.searchsorted(tr.floor_x_sorted, xy[:, 0] + radius, side="right")
-    q, pos = _expand_ranges(lo, hi)
-    k = tr.x_order[pos]
+    """(query, beam) for every beam whose floor point lies within ``radius`` of ``xy``, sorted
+    by query, then by the beam's floor X. Searched in the Y bands the disk touches (a superset,
+    widened by ``_EPS_MM``), then tested exactly."""
+    x0, y0, span = tr.band_origin_mm
+    n_bands = int(tr.band_key_sorted[-1] // span) + 1
+    r = radius + _EPS_MM
+    b_lo = np.clip(np.floor((xy[:, 1] - r - y0) / _BAND_MM), 0, n_bands - 1).astype(np.intp)
+    b_hi = np.clip(np.floor((xy[:, 1] + r - y0) / _BAND_MM), 0, n_bands - 1).astype(np.intp)
+    qb, pos_b = _expand_ranges(b_lo, b_hi + 1)  # (query, band) pairs
+    base = pos_b * span
+    xa = np.clip(xy[qb, 0] - r[qb] - x0 + 1.0, 0.0, span - 1.0)
+    xb = np.clip(xy[qb, 0] + r[qb] - x0 + 1.0, 0.0, span - 1.0)
+    lo = np.searchsorted(tr.band_key_sorted, base + xa, side="left")
+    hi = np.searchsorted(tr.band_key_sorted, base + xb, side="right")
+    own, pos = _expand_ranges(lo, hi)
+    q = qb[own]
+    k = tr.band_order[pos]
     d = np.hypot(tr.floor_mm[k, 0] - xy[q, 0], tr.floor_mm[k, 1] - xy[q, 1])
     ok = d <= radius[q]
-    return q[ok], k[ok]
+    q, k = q[ok], k[ok]
+    order = np.lexsort((tr.x_rank[k], q))
+    return q[order], k[order]
+
+
+#: Width of the Y bands in which :func:`_beams_near` looks for floor points, mm (any width
+#: gives the same answer; ≈ the radius of a typical search disk keeps the runs short).
+_BAND_MM = 50.0
+#: The bands and runs searched are widened by this much, so rounding never loses a beam, mm.
+_EPS_MM = 1e-6
 
 
 def match_triples(
@@ -582,6 +621,52 @@ def _components(nodes: NDArray[np.int64]) -> NDArray[np.int64]:
         lab = new
 
 
+def _dominant_triples(
+    nodes: NDArray[np.int64], w: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """(triples in every maximum-weight packing, triples still open) of positive weights ``w``.
+
+    A triple t conflicts with at most one chosen triple per node (the triples through one node
+    exclude each other), so whatever a packing without t gains from t's neighbours is at most
+    S_t = Σ over t's three nodes of the largest other weight there. If w_t > S_t, swapping t in
+    for them strictly improves any packing without t: t is in every optimum, and its neighbours
+    in none. Two such triples never share a node (each would outweigh the other), so all are
+    taken at once; their neighbours are dropped, and the test repeats on what is left. Exact
+    (nothing changes the optimum); it leaves the integer program only the truly contested
+    triples.
+    """
+    t_all = len(w)
+    open_ = np.arange(t_all, dtype=np.intp)
+    sure: list[NDArray[np.intp]] = []
+    n_nodes = int(nodes.max()) + 1 if t_all else 0
+    while len(open_):
+        nd = nodes[open_]
+        ww = w[open_]
+        flat = nd.ravel()  # (3T,) entry e belongs to triple e // 3
+        we = np.repeat(ww, 3)
+        order = np.lexsort((-we, flat))
+        fs = flat[order]
+        first = np.concatenate([[True], fs[1:] != fs[:-1]])
+        starts = np.flatnonzero(first)
+        group = np.cumsum(first) - 1
+        top1 = we[order][starts]
+        sizes = np.diff(np.concatenate([starts, [len(fs)]]))
+        top2 = np.where(sizes > 1, we[order][np.minimum(starts + 1, len(fs) - 1)], 0.0)
+        other = np.where(first, top2[group], top1[group])  # largest other weight at the node
+        s_e = np.empty(len(fs))
+        s_e[order] = other
+        s_t = s_e.reshape(-1, 3).sum(axis=1)
+        dom = ww > s_t
+        if not dom.any():
+            break
+        sure.append(open_[dom])
+        used = np.zeros(n_nodes, dtype=bool)
+        used[nd[dom].ravel()] = True
+        open_ = open_[~used[nd].any(axis=1)]
+    taken = np.concatenate(sure) if sure else np.zeros(0, np.intp)
+    return taken.astype(np.intp), open_
+
+
 def _max_weight_packing(
     a: NDArray[np.int64],
     b: NDArray[np.int64],
@@ -591,19 +676,26 @@ def _max_weight_packing(
 ) -> tuple[NDArray[np.intp], int, int, int]:
     """The set of triples of largest total weight using each node (a, b or k) at most once.
 
-    Split into connected components of the conflict graph; a lone triple is taken; a small
+    The triples in every optimum are taken first (:func:`_dominant_triples`); what is left is
+    split into connected components of the conflict graph; a lone triple is taken; a small
     component (≤ ``_SMALL`` triples) is solved exactly by branch and bound, the larger ones all
     together as one integer program (HiGHS through :func:`scipy.optimize.milp`, exact; its
-    LP relaxation is nearly always integral here). Returns (chosen indices, components,
-    largest component, components not proven optimal).
+    LP relaxation is nearly always integral here). Returns (chosen indices, components of
+    what was left open (+ 1 per sure triple), largest such component, components not proven
+    optimal).
     """
-    nodes = np.column_stack([a, b, k]).astype(np.int64)
+    nodes_all = np.column_stack([a, b, k]).astype(np.int64)
+    sure, rest = _dominant_triples(nodes_all, w)
+    chosen = [sure]
+    if len(rest) == 0:
+        return sure, len(sure), 1, 0
+    nodes, w = nodes_all[rest], w[rest]
     lab = _components(nodes)
     order = np.argsort(lab, kind="stable")
     lab_s = lab[order]
     starts = np.flatnonzero(np.concatenate([[True], lab_s[1:] != lab_s[:-1]]))
     sizes = np.diff(np.concatenate([starts, [len(lab_s)]]))
-    chosen = [order[starts[sizes == 1]]]
+    chosen.append(rest[order[starts[sizes == 1]]])
     inexact = 0
     big = []
     for st, sz in zip(starts[sizes > 1], sizes[sizes > 1], strict=True):
@@ -612,15 +704,15 @@ def _max_weight_packing(
             big.append(idx)
             continue
         sel, exact = _solve_component(nodes[idx], w[idx], node_limit)
-        chosen.append(idx[sel])
+        chosen.append(rest[idx[sel]])
         inexact += 0 if exact else 1
     if big:
         idx = np.concatenate(big)
         sel, exact = _solve_milp(nodes[idx], w[idx])
-        chosen.append(idx[sel])
+        chosen.append(rest[idx[sel]])
         inexact += 0 if exact else len(big)
     out = np.concatenate(chosen).astype(np.intp)
-    return out, len(sizes), int(sizes.max()), inexact
+    return out, len(sizes) + len(sure), int(sizes.max()), inexact
 
 
 #: Components up to this many triples are searched exhaustively (branch and bound in Python,

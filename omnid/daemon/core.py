@@ -92,6 +92,10 @@ class StatusSample(Protocol):
     def faults(self) -> int: ...
     @property
     def timestamp_s(self) -> float: ...
+    @property
+    def left_applied_duty(self) -> float: ...
+    @property
+    def right_applied_duty(self) -> float: ...
 
 
 class WorldMap(Protocol):
@@ -219,11 +223,14 @@ class ControlCore:
         self.status = status
         if prev is not None and status.timestamp_s < prev.timestamp_s:
             return  # out of order: keep time monotonic
+        # the duty the unit says it applies from now on, not the one the core asked for: a unit
+        # that refused a command (stale, watchdog, not armed) holds its wheels at rest, and a
+        # wheel at rest under duty 0 is no bump
         self.stall.on_status(
             int(status.left_clocks),
             int(status.right_clocks),
             float(status.timestamp_s),
-            self.motion.duties,
+            (float(status.left_applied_duty), float(status.right_applied_duty)),
         )
         dx, dy, dth = self.odometry.update(
             int(status.left_clocks),

@@ -32,7 +32,9 @@ from omnid.sim.render import (
     RenderOptions,
     SpotKind,
     SpotModel,
+    hits_flux,
     laser_image,
+    mean_spot,
     random_spots,
     render_hits,
 )
@@ -193,3 +195,149 @@ def pooled_rms(scores: list[Score] | list[NDArray[np.float64]]) -> float:
         return float("nan")
     all_e = np.vstack(e)
     return float(np.sqrt((all_e**2).sum(axis=1).mean()))
+
+
+#: The rendered sensor saturates here: a pixel rounding to 255 says only "≥ 254.5", gray.
+_CLIP_GRAY = 254.5
+
+
+def _censored_information(z: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Fisher information about the mean of a unit-variance Gaussian observation censored above
+    at ``z`` standard deviations from its mean, relative to the uncensored one:
+    Φ(z) − zφ(z) + φ(z)²/(1 − Φ(z)) (1 far below the clip, → 0 deep in it)."""
+    z = np.clip(z, -12.0, 12.0)
+    phi = np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+    cdf = 0.5 * (1.0 + np.vectorize(math.erf)(z / math.sqrt(2.0)))
+    tail = np.maximum(1.0 - cdf, 1e-300)
+    return np.clip(cdf - z * phi + phi * phi / tail, 0.0, 1.0)
+
+
+def _grain_correlation(shape: tuple[int, int], grain_px: float) -> NDArray[np.float64]:
+    """(P, P) correlation of a white field blurred by a Gaussian of ``grain_px`` between the
+    pixels of a window of ``shape``: exp(−d²/4s²)."""
+    rr, cc = np.indices(shape)
+    r, c = rr.ravel().astype(np.float64), cc.ravel().astype(np.float64)
+    d2 = (r[:, None] - r[None, :]) ** 2 + (c[:, None] - c[None, :]) ** 2
+    return np.asarray(np.exp(-d2 / (4.0 * grain_px * grain_px)))
+
+
+def _light(
+    cam: MirrorCamera,
+    spots: SpotModel,
+    rc: NDArray[np.float64],
+    sigma_px: float,
+    peak_gray: float,
+    window: tuple[tuple[int, int], tuple[int, int]],
+) -> NDArray[np.float64]:
+    """One dot's expected light (profile and halo) in ``window`` = (top_left, shape)."""
+    return mean_spot(cam, rc, sigma_px, peak_gray, spots, window[0], window[1])[1]
+
+
+def centre_bound_px(
+    cs: Case, camera: int, options: RenderOptions | None = None, max_dots: int = 40, seed: int = 0
+) -> NDArray[np.float64]:
+    """The Cramér–Rao lower bound of the centre error (px, √(var_row + var_col)) of up to
+    ``max_dots`` isolated dots of one camera of a case (a random sample), from what made the
+    image (all known here):
+
+    - the dot's expected light (:func:`~omnid.sim.render.mean_spot`: its profile integrated
+      over the pixels, stretch, flat top, its own halo ring), with a blur and albedo drawn as
+      the renderer draws them; unknowns: centre (row, col), brightness, blur σ, a constant
+      background under the dot;
+    - the noise of the subtracted image base − mask per pixel: read noise² + shot gain ×
+      signal, in both frames, and the rounding (1/12 each), the scene taken from the mask;
+    - clipping: a pixel of the base frame at 255 is censored (only "≥ 254.5" is known), its
+      information scaled by :func:`_censored_information`;
+    - speckle grains (on the dot, in its halo): a multiplicative Gaussian field of the model's
+      contrast and correlation, i.e. noise of covariance c²·μ_i μ_j ρ_ij added to the pixels'
+      own (the bound is then the Gaussian one, F = Jᵀ C⁻¹ J, the covariance taken as known).
+
+    Neighbours are taken as known (the dots are isolated: their tails are not counted), so
+    the bound is what an ideal estimator reaches; a measured RMS above it is bias (model
+    mismatch, neighbours, clipping handled wrong) or inefficiency.
+    """
+    opts = options or RenderOptions.realistic(spots=cs.spots)
+    spots = cs.spots
+    cam = cs.rig.cam1 if camera == 1 else cs.rig.cam2
+    vis = cs.hits.visible1 if camera == 1 else cs.hits.visible2
+    cols = slice(0, 2) if camera == 1 else slice(2, 4)
+    flux_all = hits_flux(cs.hits, cs.rig, spots)[vis, camera - 1]
+    pix = cs.hits.pixels[vis][:, cols]
+    inside = cam.in_disk(pix, EDGE_MARGIN_PX)
+    pix, flux_all = pix[inside], flux_all[inside]
+    iso = isolated(pix, spots)
+    rng = np.random.default_rng(seed)
+    idx = np.flatnonzero(iso)
+    if len(idx) > max_dots:
+        idx = np.sort(rng.choice(idx, max_dots, replace=False))
+    sig = spots.sigma_px * (1.0 + spots.sigma_jitter * rng.uniform(-1, 1, len(idx)))
+    amp = spots.peak_gray * (1.0 + spots.peak_jitter * rng.uniform(-1, 1, len(idx)))
+    amp = amp * flux_all[idx]
+    mask = np.asarray(cs.capture.mask1 if camera == 1 else cs.capture.mask2, dtype=np.float64)
+    if mask.ndim == 3:
+        mask = mask[..., 1]
+    grow = 1.0 + max(spots.rim_radial, spots.rim_tangential, 0.0)
+    halo_reach = 1.6 * spots.halo_sigma_px if spots.halo_fraction > 0 else 0.0
+    grains = spots.speckle_contrast > 0 or (spots.halo_fraction > 0 and spots.halo_speckle > 0)
+    h_max = 11 if grains else 16
+    half = int(min(max(math.ceil(3.5 * spots.sigma_px * grow), math.ceil(halo_reach), 4), h_max))
+    shape = (2 * half + 1, 2 * half + 1)
+    corr_dot = _grain_correlation(shape, spots.speckle_grain_px) if grains else None
+    corr_halo = _grain_correlation(shape, 0.8) if grains else None
+    delta = 0.02
+    out = np.full(len(idx), np.nan)
+    for n, (k, s, a) in enumerate(zip(idx, sig, amp, strict=True)):
+        p = pix[k]
+        tl = (round(p[0]) - half, round(p[1]) - half)
+        if tl[0] < 0 or tl[1] < 0 or tl[0] + shape[0] > mask.shape[0]:
+            continue
+        if tl[1] + shape[1] > mask.shape[1]:
+            continue
+
+        dot, mu = mean_spot(cam, p, s, a, spots, tl, shape)
+        dr, dc = np.array([delta, 0.0]), np.array([0.0, delta])
+        win = (tl, shape)
+
+        def slope(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.float64]:
+            return (hi - lo) / (2 * delta)
+
+        jac = [
+            slope(_light(cam, spots, p - dr, s, a, win), _light(cam, spots, p + dr, s, a, win)),
+            slope(_light(cam, spots, p - dc, s, a, win), _light(cam, spots, p + dc, s, a, win)),
+            mu / max(a, 1e-9),
+            np.ones(shape),
+            slope(
+                _light(cam, spots, p, s - delta, a, win), _light(cam, spots, p, s + delta, a, win)
+            ),
+        ]
+        J = np.column_stack([j.ravel() for j in jac])
+        scene = mask[tl[0] : tl[0] + shape[0], tl[1] : tl[1] + shape[1]].ravel()
+        lit = scene * (1.0 + opts.flicker)
+        base_mean = lit + mu.ravel()
+        var_base = opts.noise_sigma**2 + opts.shot_noise_gain * np.maximum(base_mean, 0) + 1 / 12
+        var_mask = opts.noise_sigma**2 + opts.shot_noise_gain * np.maximum(scene, 0) + 1 / 12
+        kept = _censored_information((_CLIP_GRAY - base_mean) / np.sqrt(var_base))
+        var = (var_base + var_mask) / np.maximum(kept, 1e-9)
+        if grains:
+            assert corr_dot is not None and corr_halo is not None
+            d = dot.ravel()
+            glow = (mu - dot).ravel()
+            cov = np.diag(var)
+            cov += spots.speckle_contrast**2 * np.outer(d, d) * corr_dot
+            cov += spots.halo_speckle**2 * np.outer(glow, glow) * corr_halo
+            fisher = J.T @ np.linalg.solve(cov, J)
+        else:
+            fisher = (J / var[:, None]).T @ J
+        try:
+            inv = np.linalg.inv(fisher)
+        except np.linalg.LinAlgError:
+            continue
+        out[n] = math.sqrt(max(inv[0, 0] + inv[1, 1], 0.0))
+    return out[np.isfinite(out)]
+
+
+def bound_rms_px(cs: Case, max_dots: int = 40) -> float:
+    """The case's Cramér–Rao bound as an RMS over its isolated dots (both cameras), px — the
+    figure to set next to the measured centre RMS."""
+    b = np.concatenate([centre_bound_px(cs, k, max_dots=max_dots, seed=k) for k in (1, 2)])
+    return float(np.sqrt(np.mean(b * b))) if len(b) else float("nan")

@@ -198,6 +198,11 @@ class Score:
     dropoff_visible: int = 0
     dropoff_correct: int = 0
     class_right: int = 0
+    # dots the matcher reported as not understood (ambiguous, or no beam explains them), and
+    # the clouds with at least 3 of them (the daemon keeps those out of its map: a stop)
+    not_understood: int = 0
+    clouds_withheld: int = 0
+    clouds: int = 0
     err_sum: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     ms: list[float] = field(default_factory=list)
 
@@ -212,6 +217,9 @@ class Score:
             "dropoff_visible",
             "dropoff_correct",
             "class_right",
+            "not_understood",
+            "clouds_withheld",
+            "clouds",
         ):
             setattr(self, name, getattr(self, name) + getattr(other, name))
         self.err_sum = self.err_sum + other.err_sum
@@ -290,6 +298,10 @@ def score_cloud(case: RigCase, scene: str, hits: LaserHits, cloud: Any, ms: floa
             (np.abs(h_true) <= FLOOR_TOLERANCE_MM) & (cloud.classes[ok] == PointClass.FLOOR)
         )
         sc.class_right = int(right.sum())
+    nu = int(getattr(cloud, "not_understood", 0))
+    sc.not_understood = nu
+    sc.clouds_withheld = int(nu >= 3)
+    sc.clouds = 1
     sc.ms.append(ms)
     return sc
 

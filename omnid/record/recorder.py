@@ -609,6 +609,8 @@ def _cloud(rec: Recorder, t_ns: int, t_s: float, p: Any) -> Out:
         "obstacle": int((cls == 1).sum()),
         "dropoff": int((cls == 2).sum()),
         "floor_depth_mm": float(cloud.floor_depth_mm),
+        "calibration_fit": float(cloud.calibration_fit),  # null: not measured
+        "not_understood": int(cloud.not_understood),
     }
     cap_ns = round(t_cap * 1e9) + rec.clock_offset_ns
     return [

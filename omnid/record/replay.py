@@ -259,8 +259,15 @@ def replay(
             meta, msg = doc
             xyz, cls = tp.decode_point_cloud(msg.data)
             n = len(xyz)
+            fit = meta.get("calibration_fit")  # absent in older recordings, null if unmeasured
             cloud = PointCloud(
-                xyz, np.full((n, 3, 3), np.nan), np.zeros((n, 4)), cls, meta["floor_depth_mm"]
+                xyz,
+                np.full((n, 3, 3), np.nan),
+                np.zeros((n, 4)),
+                cls,
+                meta["floor_depth_mm"],
+                calibration_fit=math.nan if fit is None else float(fit),
+                not_understood=int(meta.get("not_understood", 0)),
             )
             t_cap = float(meta["capture_time_s"])
             cap = images.get(round(t_cap, 6))

@@ -81,6 +81,8 @@ JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
             obstacle="i",
             dropoff="i",
             floor_depth_mm="n",
+            calibration_fit="n",
+            not_understood="i",
         ),
     ),
     DEMAND: (

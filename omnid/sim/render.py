@@ -644,6 +644,42 @@ def laser_image(
     return _laser_light(cam, pos, sig, amp, spots, disk, gen)
 
 
+def mean_spot(
+    cam: MirrorCamera,
+    rc: ArrayLike,
+    sigma_px: float,
+    peak_gray: float,
+    spots: SpotModel,
+    top_left: tuple[int, int],
+    shape: tuple[int, int],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The expected light of ONE dot at image position ``rc`` (row, col) px, of blur
+    ``sigma_px`` and unstretched peak ``peak_gray`` (one realisation of :func:`_spot_draws`), in
+    the window of ``shape`` whose first pixel is ``top_left``: (the dot's own profile, its
+    profile plus its halo), float64 gray levels, drawn exactly as :func:`laser_image` draws them
+    but without the random parts (speckle grains have mean 1; ghosts are other spots) and
+    without the disk's edge. Used for the Cramér–Rao bound of the centre
+    (:mod:`omnid.experiments.detection`)."""
+    pos = np.asarray(rc, dtype=np.float64).reshape(1, 2)
+    local = pos - np.asarray(top_left, dtype=np.float64)
+    sig = np.array([sigma_px], dtype=np.float64)
+    amp = np.array([peak_gray], dtype=np.float64)
+    dot = np.zeros(shape, dtype=np.float64)
+    if spots.isotropic_gaussian:
+        _add_spots(dot, local, sig, amp)
+    else:
+        cov = _spot_covariances(cam, pos, sig, spots)
+        stretch = np.sqrt(np.linalg.det(cov)) / (sig * sig)
+        _add_shaped_spots(dot, local, cov, amp / stretch, spots.profile_power)
+    total = dot.copy()
+    if spots.halo_fraction > 0:
+        smooth = SpotModel(
+            halo_fraction=spots.halo_fraction, halo_sigma_px=spots.halo_sigma_px, halo_speckle=0.0
+        )
+        total += _halos(shape, local, amp, smooth, np.random.default_rng(0))
+    return dot, total
+
+
 def render_camera_pair(
     cam: MirrorCamera,
     rc: ArrayLike,

@@ -92,6 +92,7 @@ class Trial:
     hazard: tuple[tuple[str, int], ...] = ()
     opening: tuple[float, float] | None = None
     goal_x_mm: float | None = None  # the axle should get past this (a passage)
+    response: bool = True  # measure the hazard response (not for a passage meant to be passed)
     config: dict[str, Any] = field(default_factory=dict)  # safety settings changed for this trial
 
 
@@ -325,7 +326,8 @@ def _passage(name: str, kind: RiderKind, seed: int, width_mm: float, depth_mm: f
                       straight_mm=1400.0)  # fmt: skip
     duration = 14.0 + (depth_mm + 4000.0) / 90.0
     return Trial(name, kind, seed, course, duration, rider, chair_for(seed),
-                 hazard=(("box", 0), ("box", 1)), opening=(x0, x1), goal_x_mm=through)  # fmt: skip
+                 hazard=(("box", 0), ("box", 1)), opening=(x0, x1), goal_x_mm=through,
+                 response=False)  # fmt: skip
 
 
 def doorway(width_mm: float) -> Callable[[RiderKind, int], Trial]:
@@ -351,7 +353,8 @@ def along_wall(kind: RiderKind, seed: int) -> Trial:
                    start=(0.0, lateral, dth), name="along a wall at 150 mm")  # fmt: skip
     rider = LinePilot(kind, (0.0, 0.0), 0.0, until_x_mm=4200.0, start_s=0.7)
     return Trial("along a wall at 150 mm", kind, seed, course, 40.0, rider, chair_for(seed),
-                 hazard=(("box", 0),), opening=(0.0, 3800.0), goal_x_mm=3800.0)  # fmt: skip
+                 hazard=(("box", 0),), opening=(0.0, 3800.0), goal_x_mm=3800.0,
+                 response=False)  # fmt: skip
 
 
 def reverse_unseen(kind: RiderKind, seed: int) -> Trial:
@@ -435,6 +438,7 @@ class TrialResult:
     falls: int
     false_stops: int  # events
     false_stop_s: float
+    false_stops_unseen: int  # of which refused for space never seen (unknown_stop)
     stop_clearance_mm: float  # footprint to the hazard where the chair ended (nan: no hazard)
     min_clearance_mm: float  # footprint to the hazard, closest in the run
     hazard_to_limit_s: float  # hazard seen and in range → first limited command (nan, inf)
@@ -605,7 +609,9 @@ def run_trial(
     false = np.zeros(n, dtype=bool)
     for i in cand:
         false[i] = way_clear(poses[i], trace[i, 1], trace[i, 2], outline, core)
-    events = int(np.count_nonzero(np.diff(np.concatenate([[0], false.astype(np.int8)])) == 1))
+    starts = np.flatnonzero(np.diff(np.concatenate([[0], false.astype(np.int8)])) == 1)
+    events = len(starts)
+    unseen = sum("unknown_stop" in result.reasons_at(int(i)) for i in starts)
     period = float(np.median(np.diff(st[:, 0]))) if n > 1 else 0.02
     # hazards
     stop_clear = min_clear = math.nan
@@ -614,7 +620,7 @@ def run_trial(
         hz = _rects(trial.course, trial.hazard)
         stop_clear = footprint_clearance_mm(poses[-1], hz)
         min_clear = min(footprint_clearance_mm(p, hz) for p in poses[:: max(1, n // 400)])
-        seen_s = _dot_times(sim, trial, result)
+        seen_s = _dot_times(sim, trial, result) if trial.response else np.zeros(0)
         clear = np.array([footprint_clearance_mm(p, hz) for p in poses])
         sf = core.config.safety
         u = speed + 1e-9
@@ -659,7 +665,7 @@ def run_trial(
             false_reasons[name] = false_reasons.get(name, 0) + 1
     return TrialResult(
         trial.scenario, trial.rider, trial.seed, perception, result.duration_s,
-        len(sim.chair.bump_log), len(result.falls), events, float(false.sum()) * period,
+        len(sim.chair.bump_log), len(result.falls), events, float(false.sum()) * period, unseen,
         stop_clear, min_clear, to_limit, to_still, passed, min_in, stood,
         result.distance_mm / 1000.0, refusal_counts, false_reasons, wall,
     )  # fmt: skip

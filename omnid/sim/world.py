@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -43,6 +44,16 @@ def _finite(*pairs: tuple[str, float]) -> None:
         require(math.isfinite(value), key, "must be a finite number")
 
 
+def _check_region(region: Any, extent: str) -> None:
+    """An axis-aligned region's bounds are finite and ordered, and its ``extent`` (height or
+    depth, mm) is positive."""
+    names = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm", extent)
+    _finite(*((n, getattr(region, n)) for n in names))
+    require(region.x_max_mm > region.x_min_mm, "x_max_mm", "must exceed x_min_mm")
+    require(region.y_max_mm > region.y_min_mm, "y_max_mm", "must exceed y_min_mm")
+    require(getattr(region, extent) > 0, extent, "must be positive")
+
+
 @dataclass(frozen=True)
 class Box:
     """An obstacle (or a wall: a tall thin box) standing on the floor, axis-aligned, mm."""
@@ -54,16 +65,7 @@ class Box:
     height_mm: float
 
     def __post_init__(self) -> None:
-        _finite(
-            ("x_min_mm", self.x_min_mm),
-            ("x_max_mm", self.x_max_mm),
-            ("y_min_mm", self.y_min_mm),
-            ("y_max_mm", self.y_max_mm),
-            ("height_mm", self.height_mm),
-        )
-        require(self.x_max_mm > self.x_min_mm, "x_max_mm", "must exceed x_min_mm")
-        require(self.y_max_mm > self.y_min_mm, "y_max_mm", "must exceed y_min_mm")
-        require(self.height_mm > 0, "height_mm", "must be positive")
+        _check_region(self, "height_mm")
 
 
 @dataclass(frozen=True)
@@ -77,16 +79,7 @@ class DropOff:
     depth_mm: float
 
     def __post_init__(self) -> None:
-        _finite(
-            ("x_min_mm", self.x_min_mm),
-            ("x_max_mm", self.x_max_mm),
-            ("y_min_mm", self.y_min_mm),
-            ("y_max_mm", self.y_max_mm),
-            ("depth_mm", self.depth_mm),
-        )
-        require(self.x_max_mm > self.x_min_mm, "x_max_mm", "must exceed x_min_mm")
-        require(self.y_max_mm > self.y_min_mm, "y_max_mm", "must exceed y_min_mm")
-        require(self.depth_mm > 0, "depth_mm", "must be positive")
+        _check_region(self, "depth_mm")
 
 
 @dataclass(frozen=True)

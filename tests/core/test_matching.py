@@ -14,8 +14,12 @@ from omnid.core.calibration import calibrate_from_capture
 from omnid.core.detect import detect_dots
 from omnid.core.geometry import StereoRig
 from omnid.core.matching import (
+    _beams_near,
+    _dominant_triples,
+    _max_weight_packing,
     _solve_component,
     _solve_milp,
+    _tracks,
     match_best_triples,
     match_dots,
     match_dots_indexed,
@@ -173,6 +177,59 @@ def test_packing_solvers_are_exact_on_random_small_components() -> None:
         assert exact and w[sel].sum() == pytest.approx(want)
         sel2, _ = _solve_milp(nodes, w)
         assert w[sel2].sum() == pytest.approx(want)
+
+
+def test_dominant_triples_are_in_every_optimum_and_the_packing_stays_exact() -> None:
+    """The triples taken before the search (each outweighs the best its neighbours could give)
+    are in the optimum, and the whole packing's weight is the integer program's, on random
+    conflict graphs from dense (contested) to sparse (mostly dominant)."""
+    rng = np.random.default_rng(1)
+    taken = 0
+    for trial in range(60):
+        n = int(rng.integers(5, 300))
+        spread = [4, 30, 300][trial % 3]
+        nodes = np.column_stack(
+            [
+                rng.integers(0, spread, n),
+                10_000 + rng.integers(0, spread, n),
+                20_000 + rng.integers(0, spread, n),
+            ]
+        )
+        w = rng.lognormal(0.0, 1.0, n)
+        sure, rest = _dominant_triples(nodes, w)
+        assert len(np.intersect1d(sure, rest)) == 0
+        used = nodes[sure].ravel()
+        assert len(np.unique(used)) == len(used)  # the sure triples are a packing
+        sel_milp, exact = _solve_milp(nodes, w)
+        assert exact
+        assert set(sure.tolist()) <= set(sel_milp.tolist())
+        sel, _, _, inexact = _max_weight_packing(nodes[:, 0], nodes[:, 1], nodes[:, 2], w, 10**5)
+        chosen = nodes[sel].ravel()
+        assert inexact == 0 and len(np.unique(chosen)) == len(chosen)
+        assert w[sel].sum() == pytest.approx(w[sel_milp].sum(), rel=1e-9)
+        taken += len(sure)
+    assert taken > 0
+
+
+def test_beams_near_finds_exactly_the_floor_points_within_each_radius(installed) -> None:
+    """The banded search returns every (query, beam) within the radius and nothing else, in
+    query order and then the beams' floor X (what the strip search gave)."""
+    rng = np.random.default_rng(3)
+    for _case, calib in installed[:3]:
+        tr = _tracks(calib.rig, calib.laser)
+        fl = tr.floor_mm
+        xy = np.column_stack(
+            [
+                rng.uniform(fl[:, 0].min() - 200, fl[:, 0].max() + 200, 400),
+                rng.uniform(fl[:, 1].min() - 200, fl[:, 1].max() + 200, 400),
+            ]
+        )
+        radius = rng.uniform(1.0, 150.0, 400)
+        q, k = _beams_near(tr, xy, radius)
+        d = np.hypot(fl[None, :, 0] - xy[:, None, 0], fl[None, :, 1] - xy[:, None, 1])
+        want_q, want_k = np.nonzero(d <= radius[:, None])
+        order = np.lexsort((tr.x_rank[want_k], want_q))
+        assert np.array_equal(q, want_q[order]) and np.array_equal(k, want_k[order])
 
 
 def test_floor_only_calibration_reads_the_floor_and_invents_nothing_over_random_rigs() -> None:

@@ -37,6 +37,8 @@ class Status:
     laser_on: bool
     faults: int
     timestamp_s: float
+    left_applied_duty: float = 0.0  # as the unit reports it applies (0: not driving)
+    right_applied_duty: float = 0.0
 
 
 class RecordingMap(OccupancyGrid):

@@ -121,8 +121,13 @@ class Chair:
         self.travel = [5.0, 12.0]
         self.seq = 0
         self.blocked = False
+        self.refusing = False  # the unit does not obey (a stale command, its watchdog)
+        self.duty = (0.0, 0.0)  # applied, as the unit reports it
 
     def apply(self, cmd, dt: float) -> None:
+        self.duty = (0.0, 0.0) if self.refusing else (cmd.left_duty, cmd.right_duty)
+        if self.refusing:
+            return
         if self.blocked and (cmd.left_duty > 0 or cmd.right_duty > 0):
             return
         for i, d in enumerate((cmd.left_duty, cmd.right_duty)):
@@ -131,7 +136,7 @@ class Chair:
     def status(self, t: float) -> Status:
         self.seq += 1
         c = [math.floor(v / MM_PER_CLOCK) for v in self.travel]
-        return Status(self.seq, c[0], c[1], False, 0, t)
+        return Status(self.seq, c[0], c[1], False, 0, t, *self.duty)
 
 
 def joystick_core() -> ControlCore:
@@ -181,3 +186,21 @@ def test_a_bump_stops_at_once_and_refuses_that_direction_until_the_rider_asks_ot
     back = ride(core, chair, 7.0, 8.0, -1.0)
     assert back[-1][1].left_duty < 0.0 and core.bump_direction is None
     assert core.bump_count == 1  # reversing away is not a bump
+
+
+def test_wheels_a_refusing_unit_holds_at_rest_are_no_bump(caplog):
+    """The detector weighs the clocks against the duty the unit reports it applies: a unit that
+    refuses the core's commands (its watchdog, a stale command) stops its wheels, and that is
+    not a bump (the omnid bench once logged one with the wheels asked for 60 mm/s)."""
+    core, chair = joystick_core(), Chair()
+    ride(core, chair, 0.0, 3.0, 0.3)
+    chair.refusing = True
+    cycles = ride(core, chair, 3.0, 6.0, 0.3)
+    assert core.bump_count == 0 and not any(Reason.BUMP in r for _, _, r in cycles)
+    assert "bump" not in caplog.text
+    # the same chair obeying again and then blocked: the bump is found as before
+    chair.refusing = False
+    ride(core, chair, 6.0, 8.0, 0.3)
+    chair.blocked = True
+    cycles = ride(core, chair, 8.0, 11.0, 0.3)
+    assert core.bump_count == 1 and any(Reason.BUMP in r for _, _, r in cycles)

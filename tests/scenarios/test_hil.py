@@ -23,17 +23,6 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
-
-from omnid.daemon.config import OmnidConfig
-
-pytestmark = pytest.mark.xfail(
-    not hasattr(OmnidConfig(), "tilt_sensor"),
-    reason="omnid run in this build has no `tilt_sensor` link settings (the daemon branch adds "
-    "them; main's run.py calls a TiltSensorLink.from_url that does not exist)",
-    run=False,
-)
-
 NEUTRAL = (0.0, 0.0)
 FORWARD = (-20.0, 0.0)  # roll < -12°: forward (thesis 4.2.2)
 BOX_NEAR_FACE_MM = 2000.0  # box-ahead course: the box's face ahead of the axle at start

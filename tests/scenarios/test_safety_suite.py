@@ -1,0 +1,72 @@
+"""A small, fast subset of the safety scenario suite (``omnid.sim.suite``; the whole suite, both
+riders, several seeds and pipeline perception: ``python tools/safety_figures.py --suite``,
+docs/benchmarks.md). Truth perception unless a test says otherwise; rates over seeds."""
+
+from __future__ import annotations
+
+import pytest
+
+from omnid.sim.suite import SCENARIOS, clutter, run_trial, way_clear
+
+
+@pytest.mark.parametrize("kind", ["joystick", "tilt"])
+def test_reversing_into_the_unseen_never_touches_the_box(kind):
+    """A box 300 mm behind the chair, never seen: reversing (the head rider: turning round)
+    is refused, whatever the seed."""
+    for seed in range(3):
+        r = run_trial(SCENARIOS["reversing into the unseen"](kind, seed))  # type: ignore[arg-type]
+        assert r.contacts == 0 and r.falls == 0, seed
+        assert r.refusals.get("unknown_stop", 0) > 0
+        assert r.min_clearance_mm > 250.0  # it never moved towards it
+
+
+def test_with_the_creep_policy_reversing_into_the_unseen_is_a_noticed_bump():
+    r = run_trial(SCENARIOS["reversing into the unseen"]("joystick", 0), "truth",
+                  {"unknown_policy": "creep"})  # fmt: skip
+    assert r.contacts == 1  # backed into it at creep speed, once: then refused (bump)
+    assert r.refusals.get("bump", 0) > 0
+
+
+@pytest.mark.parametrize("kind", ["joystick", "tilt"])
+def test_turning_beside_an_unseen_wall_never_swings_the_tail_into_it(kind):
+    for seed in range(2):
+        r = run_trial(SCENARIOS["turn beside an unseen wall"](kind, seed))  # type: ignore[arg-type]
+        assert r.contacts == 0, seed
+        assert r.refusals.get("unknown_stop", 0) > 0
+
+
+def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refused():
+    """Truth perception, the joystick steering through from 3.5 m off (±10°, ±80 mm): a 900 mm
+    doorway is passed and never stood in; a 780 mm one (the chair 700 + 2 × 25 side margin +
+    the rider's aim) is never touched."""
+    for seed in range(2):
+        r = run_trial(SCENARIOS["doorway 900 mm"]("joystick", seed))
+        assert r.contacts == 0 and r.passed and not r.stood_in_opening, seed
+        assert r.min_speed_in_opening_mm_s > 80.0
+    r = run_trial(SCENARIOS["doorway 780 mm"]("joystick", 0))
+    assert r.contacts == 0
+
+
+def test_a_thin_post_with_pipeline_perception_stops_the_chair_before_it():
+    for kind in ("joystick", "tilt"):
+        r = run_trial(SCENARIOS["thin post"](kind, 0), "pipeline")  # type: ignore[arg-type]
+        assert r.contacts == 0
+        assert 100.0 < r.stop_clearance_mm < 400.0
+        assert r.stop_to_standstill_s < 1.0
+
+
+def test_false_stop_truth_check_sees_a_box_in_the_way_and_not_one_beside_it():
+    from omnid.sim.suite import _outline, _rects
+
+    trial = clutter("joystick", 0, 10.0)
+    outline = _outline(_rects(trial.course))
+
+    class _Cfg:  # the daemon's motion limits
+        from omnid.daemon.motion import MotionSettings
+
+        motion = MotionSettings()
+
+    core = type("C", (), {"config": _Cfg()})()
+    # box 1 is at x 800..1200, y 600..1000: straight ahead of a chair at (0, 800) facing +x
+    assert not way_clear((0.0, 800.0, 0.0), 0.6, 0.0, outline, core)
+    assert way_clear((0.0, -200.0, 0.0), 0.6, 0.0, outline, core)
