@@ -507,7 +507,7 @@ Out = list[tuple[str, bytes]]
 def _cycle(rec: Recorder, t_ns: int, t_s: float, p: Any) -> Out:
     """A control cycle: (seq, report, sources, flags, age, pose, rig)."""
     seq, report, sources, flags, age, pose, rig = p
-    capturing, laser, link_ok, halt = flags
+    capturing, laser, link_ok, halt, camera_ok = flags
     d, dec, cmd = report.demand, report.decision, report.command
     demand = {
         "seq": seq,
@@ -535,6 +535,7 @@ def _cycle(rec: Recorder, t_ns: int, t_s: float, p: Any) -> Out:
         "perception_age_s": age,
         "capturing": capturing,
         "link_ok": link_ok,
+        "camera_ok": camera_ok,
         "halt": halt,
     }
     command = {

@@ -2,7 +2,7 @@
 
 What would this version have done? The recording holds every input the daemon's core was
 given, in order (tilt readings, joystick, keys, control-unit replies, perception results) and
-every cycle's flags (capturing, laser, link health, shutdown). Replay builds a fresh
+every cycle's flags (capturing, laser, link and camera health, shutdown). Replay builds a fresh
 :class:`~omnid.daemon.core.ControlCore` from the recorded configuration (``--set`` changes
 keys), feeds it the same inputs in the same order and runs ``step`` at each recorded cycle's
 time; each command and reason set is compared with the recorded one. Where the recording holds
@@ -286,6 +286,7 @@ def replay(
             t_start = t if t_start is None else t_start
             core.capturing = bool(safety.get("capturing"))
             core.link_ok = bool(safety.get("link_ok", True))
+            core.camera_ok = bool(safety.get("camera_ok", True))  # absent in older recordings
             core.halt = bool(safety.get("halt"))
             core.laser_on = bool(cmd_doc.get("laser_requested", cmd_doc.get("laser_on", True)))
             cmd = core.step(t)

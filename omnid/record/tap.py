@@ -134,7 +134,13 @@ class RecordingCore:
         age = None if core.perception_time_s is None else now_s - core.perception_time_s
         x, y, th = (float(v) for v in core.odometry.pose)
         rig = (float(core.config.perception.rig_x_offset_mm), self._rig[1])
-        flags = (bool(core.capturing), bool(core.laser_on), bool(core.link_ok), bool(core.halt))
+        flags = (
+            bool(core.capturing),
+            bool(core.laser_on),
+            bool(core.link_ok),
+            bool(core.halt),
+            bool(core.camera_ok),
+        )
         sources = core.mux.source_demands(now_s)
         rec.put("cycle", now_s, (self._next(), report, sources, flags, age, (x, y, th), rig))
         faults = frozenset(r.value for r in report.reasons if r.value in FAULT_REASONS)

@@ -107,6 +107,7 @@ JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                 perception_age_s="n",
                 capturing="b",
                 link_ok="b",
+                camera_ok="b",
                 halt="b",
                 reason_bits="i",
             ),

@@ -3,11 +3,13 @@ teleop socket; Ctrl-C stops it all; the daemon's recording replays as recorded."
 
 from __future__ import annotations
 
+import queue
 import re
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -25,7 +27,6 @@ def test_bench_drives_forward_and_stops_on_ctrl_c(tmp_path: Path, capsys) -> Non
             "bench",
             "--dir",
             str(folder),
-            "--quiet",
             "--record",
             str(rec),
             "--duration-s",
@@ -44,21 +45,34 @@ def test_bench_drives_forward_and_stops_on_ctrl_c(tmp_path: Path, capsys) -> Non
                 break
         text = "".join(lines)
         assert "omnid teleop --socket" in text, text
+        out: queue.Queue[str] = queue.Queue()
+        stream = p.stdout
+        reader = threading.Thread(target=lambda: [out.put(x) for x in stream], daemon=True)
+        reader.start()
         teleop = folder / "teleop.sock"
-        time.sleep(1.5)  # the first clouds: forward is allowed only with fresh perception
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
             c.connect(str(teleop))
             c.settimeout(2.0)
-            # a key holds 0.5 s; key repeat renews it. 5 s: forward needs perception younger
-            # than 0.3 s (the stream capture), and on a loaded machine the niced worker's
-            # first clouds, or a cloud now and then, come late
-            for _ in range(20):
+            # a key holds 0.5 s; key repeat renews it — until the bench's status line shows
+            # the chair 150 mm on: forward needs perception younger than 0.3 s, and on a loaded
+            # machine the niced worker's clouds come late and the chair waits (as it should)
+            x_mm, end = 0.0, time.monotonic() + 40.0
+            while x_mm <= 150.0 and time.monotonic() < end:
                 c.sendall(b"forward\n")
                 assert c.recv(64).startswith(b"ok")
                 time.sleep(0.25)
+                while not out.empty():
+                    line = out.get()
+                    lines.append(line)
+                    if m := re.match(r"t=\s*\S+ s chair \((-?\d+),", line):
+                        x_mm = float(m.group(1))
         time.sleep(1.0)
         p.send_signal(signal.SIGINT)
-        rest, _ = p.communicate(timeout=40)
+        p.wait(timeout=40)
+        reader.join(timeout=10)  # the rest of its output, to the end
+        while not out.empty():
+            lines.append(out.get())
+        rest = "".join(lines)
     finally:
         if p.poll() is None:
             p.kill()
