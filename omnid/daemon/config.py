@@ -60,10 +60,11 @@ class PerceptionSettings(Settings):
     enabled: bool = True
     method: Literal["best", "thesis"] = "best"
     calibration_path: str = "/etc/omnid/calibration.yaml"
-    # stream: a cloud for every laser-on frame, the laser off for every mask_every_frames-th;
-    # stationary: the thesis' laser off → mask → laser on → base every period_s (the default
-    # until the matcher and the map hold at frame rate: docs/framerate.md)
-    capture: Literal["stream", "stationary"] = "stationary"
+    # stream: a cloud for every laser-on frame, the laser off for every mask_every_frames-th
+    # (needs a laser that switches within laser_switch_latency_s); stationary: the thesis'
+    # laser off → mask → laser on → base every period_s (with safety.perception_timeout_s
+    # above period_s: docs/framerate.md)
+    capture: Literal["stream", "stationary"] = "stream"
     period_s: float = setting(0.5, 0.01, 10.0)  # stationary: start a new cycle at most this often
     # stream: worst case from the laser request to the light switched (the command path plus
     # the relay); frames exposed while a request may still be taking effect are not used
@@ -140,6 +141,13 @@ class OmnidConfig(Settings):
             "one control period must not exceed control_unit.command_period_s (the link "
             "sends only commands computed within the last two command periods)",
         )
+        if self.perception.enabled and self.perception.capture == "stationary":
+            require(
+                self.safety.perception_timeout_s > self.perception.period_s,
+                "safety.perception_timeout_s",
+                "must exceed perception.period_s with perception.capture: stationary (a "
+                "cloud at most every period_s; 1.5 s with the shipped 0.5 s)",
+            )
 
 
 def load_config(path: str | Path) -> OmnidConfig:

@@ -133,9 +133,10 @@ class SafetySettings(Settings):
     # rig offset + nearest dot − footprint front − margin (300 + 330 − 350 − 50 = 230), rounded
     # up; crossed at unknown_creep_speed_mm_s whatever the policy (0: refused like the rest)
     front_blind_mm: float = setting(250.0, 0.0, 2000.0)
-    # perception older than this → no forward motion; the stationary capture needs its period
-    # + ~0.2 s; with perception.capture: stream (a cloud every ~50 ms) 0.3 s is enough
-    perception_timeout_s: float = setting(1.5, 0.05, 5.0)
+    # perception older than this → no forward motion; perception.capture: stream delivers a
+    # cloud every ~50 ms (a base waits ≤ 2 frames for its mask, ~90 ms to the map): 0.3 s is
+    # 3 frame-pairs of margin; the stationary capture needs its period + ~0.2 s (1.5 s)
+    perception_timeout_s: float = setting(0.3, 0.05, 5.0)
     # and no forward motion after this much travel since the newest perception's capture
     perception_max_travel_mm: float = setting(250.0, 10.0, 5000.0)
     # the cameras deliver nothing (perception.camera_silence_s): at most this speed at once

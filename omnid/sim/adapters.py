@@ -99,7 +99,7 @@ class EmulatedControlUnit:
         watchdog_s: float = 0.25,
         command_period_s: float = 0.02,
         max_missed_replies: int = 2,
-        laser_delay_s: float = 0.02,
+        laser_delay_s: float = 0.01,
         laser_jitter_s: float = 0.0,
         seed: int = 0,
     ) -> None:
@@ -189,7 +189,7 @@ def make_control_unit(
     kind: str,
     watchdog_s: float,
     command_period_s: float = 0.02,
-    laser_delay_s: float = 0.02,
+    laser_delay_s: float = 0.01,
     laser_jitter_s: float = 0.0,
     seed: int = 0,
 ) -> Any:

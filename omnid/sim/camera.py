@@ -195,8 +195,18 @@ class _CameraRays:
         bx = c * self.sx - s * (-self.sy)
         by = s * self.sx + c * (-self.sy)
         z = np.full(len(bx), H)
+        # the rays' xy extent between depth Z0 and H: a box outside it is met by no ray
+        bx_lo, bx_hi, by_lo, by_hi = bx.min(), bx.max(), by.min(), by.max()
         with np.errstate(divide="ignore", invalid="ignore"):
             for x0, x1, y0, y1, hgt in boxes:
+                z0 = max(H - hgt, 0.0)
+                if (
+                    ax + max(z0 * bx_hi, H * bx_hi) < x0
+                    or ax + min(z0 * bx_lo, H * bx_lo) > x1
+                    or ay + max(z0 * by_hi, H * by_hi) < y0
+                    or ay + min(z0 * by_lo, H * by_lo) > y1
+                ):
+                    continue
                 zin, zout = _slab(ax, bx, x0, x1, np.full_like(bx, H - hgt), np.full_like(bx, H))
                 zin2, zout2 = _slab(ay, by, y0, y1, zin, zout)
                 hit = (zin2 <= zout2) & (zin2 < z) & (zin2 >= 0)

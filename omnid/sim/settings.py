@@ -49,10 +49,10 @@ class SimSettings:
     # camera.exposure_s (the longest the capture cycle plans for)
     camera: CameraModel | None = None
     # the control unit's laser switch: command → light, s, plus a uniform 0 … jitter per
-    # switch (the emulator's 20 ms relay; the stream capture at 30 frames/s wants a laser that
-    # switches between two exposures, e.g. 8 + 4 ms with perception.laser_switch_latency_s 18 ms)
-    laser_delay_s: float = 0.02
-    laser_jitter_s: float = 0.0
+    # switch: 8–12 ms, within perception.laser_switch_latency_s (18 ms with the command path),
+    # so the stream capture at 30 frames/s switches between two exposures
+    laser_delay_s: float = 0.008
+    laser_jitter_s: float = 0.004
     laser_timeout_s: float | None = None  # None: the controller's perception.laser_timeout_s
     frame_timeout_s: float = 1.0  # without a controller config: the cycle's frame timeout
     record_seen: bool = True  # keep every non-floor point perception reported (off for soaks)

@@ -574,9 +574,14 @@ def way_clear(
 
 
 def run_trial(
-    trial: Trial, perception: str = "truth", config_changes: dict[str, Any] | None = None
+    trial: Trial,
+    perception: str = "truth",
+    config_changes: dict[str, Any] | None = None,
+    sim_changes: dict[str, Any] | None = None,
 ) -> TrialResult:
-    """Run one trial with the daemon's core and measure it (see the module docstring)."""
+    """Run one trial with the daemon's core and measure it (see the module docstring);
+    ``sim_changes``: further :class:`~omnid.sim.settings.SimSettings` fields (a slower
+    perception worker: ``worker_period_s``)."""
     import time
 
     from omnid.sim.rider import HeadScript
@@ -586,7 +591,8 @@ def run_trial(
     changes = {**trial.config, **(config_changes or {})}
     core = make_core(trial.rider, changes)
     settings = SimSettings(perception=perception, seed=trial.seed, record_seen=False,  # type: ignore[arg-type]
-                           stop_on_contact=False, record_period_s=0.1)  # fmt: skip
+                           stop_on_contact=False, record_period_s=0.1,
+                           **(sim_changes or {}))  # fmt: skip
     kw: dict[str, Any] = {}
     if isinstance(trial.rider_input, JoystickScript):
         kw["joystick"] = trial.rider_input

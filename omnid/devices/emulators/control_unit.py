@@ -98,7 +98,8 @@ class ControlUnitEmulator:
     clock:
         Monotonic time source, s (the simulator may pass its own).
     laser_delay_s:
-        Relay switching delay; the reply reports the relay, not the request.
+        Relay switching delay; the reply reports the relay, not the request (10 ms: within
+        the shipped ``perception.laser_switch_latency_s``, 18 ms with the command path).
     laser_jitter_s:
         Each switch takes a further uniform 0…``laser_jitter_s`` (drawn from ``seed``).
     default_watchdog_s:
@@ -112,7 +113,7 @@ class ControlUnitEmulator:
         plant: Plant | None = None,
         *,
         clock: Callable[[], float] = time.monotonic,
-        laser_delay_s: float = 0.02,
+        laser_delay_s: float = 0.01,
         laser_jitter_s: float = 0.0,
         seed: int = 0,
         default_watchdog_s: float = 0.25,
