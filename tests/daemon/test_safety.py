@@ -286,8 +286,8 @@ def test_a_limited_arc_is_softened_to_the_nearest_allowed_twist():
     xs, ys = g.cell_centers()
     # a box ahead-left, where a sharp left arc runs into it; straight on is clear
     g.states[np.ix_((xs > 350) & (xs < 600), (ys > 350) & (ys < 700))] = CellState.OBSTACLE
-    layer = SafetyLayer(S)
-    plain = SafetyLayer(dataclasses.replace(S, soften=False))
+    layer = SafetyLayer(dataclasses.replace(S, soften=True))
+    plain = SafetyLayer(S)
     asked = plain.check(g, 150.0, 0.5, perception_age_s=0.1)
     assert asked.scale < 0.7 and Reason.APPROACH in asked.reasons
     d = layer.check(g, 150.0, 0.5, perception_age_s=0.1)
@@ -304,8 +304,8 @@ def test_softening_keeps_every_rule_on_random_maps():
     direction and travel direction, is no faster than asked, and checked as a request by the
     plain layer is allowed as it stands; a request the plain layer allows is never changed."""
     rng = np.random.default_rng(3)
-    layer = SafetyLayer(S)
-    plain = SafetyLayer(dataclasses.replace(S, soften=False))
+    layer = SafetyLayer(dataclasses.replace(S, soften=True))
+    plain = SafetyLayer(S)
     softened = 0
     for _ in range(30):
         g = free_grid()
