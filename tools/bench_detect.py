@@ -137,7 +137,9 @@ def spot_models(
         "case (an estimate of what a detector can reach, not a bound); 'CRLB' is the "
         "Cramér–Rao lower bound of the centre error from the rendered spot model, the noise, "
         "the pixel integration, clipping and the grains (omnid.experiments.detection."
-        "centre_bound_px), as an RMS over --bound-dots isolated dots per camera."
+        "centre_bound_px), as an RMS over --bound-dots isolated dots per camera, the "
+        "neighbours known; 'CRLB joint': the same with every neighbour in the dot's window "
+        "unknown too (centre, brightness, blur; half the dots) — what crowding costs."
     )
     head = f"   {'family':10s} {'detector':12s} {'pooled':>7s} {'median':>7s} {'worst':>7s} "
     print(head + f"{'recall':>7s} {'FP':>5s} {'floor':>6s} {'ms':>6s}")
@@ -145,6 +147,7 @@ def spot_models(
     every_case: dict[str, list[float]] = {n: [] for n in names}
     reference: list[float] = []
     bound: list[float] = []
+    bound_joint: list[float] = []
     for kind in SPOT_KINDS:
         cases = [detection.case(kind, k) for k in range(draws)]
         floors = [detection.spot_floor_px(c.spots, c.rig.cam1, 7) for c in cases]
@@ -209,16 +212,30 @@ def spot_models(
             f"best/CRLB median {np.nanmedian(excess):.2f}x, worst {np.nanmax(excess):.2f}x; "
             f"excess √(best²−CRLB²) median {np.nanmedian(gap):.3f}, worst {np.nanmax(gap):.3f}"
         )
+        joint = [detection.bound_rms_px(cs, max(bound_dots // 2, 5), joint=True) for cs in cases]
+        bound_joint += joint
+        excess_j = [m / b for m, b in zip(best_rms, joint, strict=True)]
         print(
-            "     per case (best / CRLB): "
-            + ", ".join(f"{m:.3f}/{b:.3f}" for m, b in zip(best_rms, crlb, strict=True))
+            f"   {kind:10s} {'  CRLB joint':12s} {'':>7s} {np.nanmedian(joint):7.3f} {np.nanmax(joint):7.3f}   "
+            f"best/joint median {np.nanmedian(excess_j):.2f}x, worst {np.nanmax(excess_j):.2f}x"
+        )
+        print(
+            "     per case (best / CRLB / joint): "
+            + ", ".join(
+                f"{m:.3f}/{b:.3f}/{j:.3f}" for m, b, j in zip(best_rms, crlb, joint, strict=True)
+            )
         )
     print("   over the families (pooled RMS per family):")
     for name, values in pooled.items():
         v = np.asarray(values)
         print(f"     {name:12s} median {np.nanmedian(v):.3f} px, worst {np.nanmax(v):.3f} px")
     print("   over every case (one spot model each): median, worst decile (90th pct), worst")
-    for name, values in [*every_case.items(), ("ref (best)", reference), ("CRLB", bound)]:
+    for name, values in [
+        *every_case.items(),
+        ("ref (best)", reference),
+        ("CRLB", bound),
+        ("CRLB joint", bound_joint),
+    ]:
         v = np.asarray(values)
         print(
             f"     {name:12s} median {np.nanmedian(v):.3f} px, worst decile "

@@ -43,20 +43,18 @@ def wait_for(pred: Callable[[], bool], timeout_s: float, step_s: float = 0.002) 
 
 
 def calibrated_floor(directory: Path) -> tuple[Path, Any]:
-    """A rendered empty floor (nominal rig, ideal lattice) and ``omnid calibrate`` run on it."""
-    import cv2
-
+    """The installer's captures (empty floor, a box, a wall; nominal rig, the simulator's
+    physical laser) and ``omnid calibrate`` run on them; returns (calibration, floor capture)."""
     from omnid.core.geometry import StereoRig
-    from omnid.sim.laser import ideal_lattice
-    from omnid.sim.render import render_capture
+    from omnid.sim.installation import installation_captures, write_installation
 
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    cap = render_capture(rig, ideal_lattice().on_plane(FLOOR_MM), seed=3)
+    extras = write_installation(rig, directory, seed=3)
+    cap = installation_captures(rig, seed=3)[0]
     names = ("mask1", "base1", "mask2", "base2")
-    for name in names:
-        cv2.imwrite(str(directory / f"{name}.png"), getattr(cap, name))
     calib = directory / "calib.yaml"
-    args = [a for n in names for a in (f"--{n}", str(directory / f"{n}.png"))]
+    args = [a for n in names for a in (f"--{n}", str(directory / f"floor_{n}.png"))]
+    args += [a for e in extras for a in ("--extra", str(e))]
     out = subprocess.run(
         [
             sys.executable,

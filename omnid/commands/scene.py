@@ -26,8 +26,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-NAMES = ("mask1", "base1", "mask2", "base2")
-
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -152,10 +150,9 @@ def _dots(hits: Any, rays: Any, floor_depth_mm: float) -> list[dict[str, Any]]:
 
 
 def _write_capture(folder: Path, capture: Any, prefix: str = "") -> None:
-    from omnid.io_images import write_png
+    from omnid.sim.installation import write_capture
 
-    for name in NAMES:
-        write_png(folder / f"{prefix}{name}.png", getattr(capture, name))
+    write_capture(capture, folder, prefix)
 
 
 def _write_json(path: Path, doc: dict[str, Any]) -> None:

@@ -39,9 +39,11 @@ them. An empty input gives an empty (0, 4) result.
        4-D image space (the depth's prior is uniform along it).
 
     The answer is the one-to-one set of triples (each a, b and k at most once) of largest total
-    weight — maximum likelihood — found exactly: the conflict graph falls apart into small
-    connected components, each solved by branch and bound (``exact_node_limit`` caps the search;
-    :class:`TripleMatch` counts components where it was hit). No pattern law, no lattice, no
+    weight — maximum likelihood — found exactly: a triple that outweighs the most its
+    neighbours could give is in every optimum and is taken first (nearly all of them); what is
+    left falls apart into small connected components, each solved by branch and bound
+    (``exact_node_limit`` caps the search; :class:`TripleMatch` counts components where it was
+    hit), the large ones by an integer program. No pattern law, no lattice, no
     per-scene rule: where the geometry leaves two readings (a source nearly in the mirror plane
     and a nearly regular pattern), the reading that explains more dots with smaller residuals
     wins, and the rest stays unmatched.
@@ -372,12 +374,13 @@ class BeamTracks:
     x_order: NDArray[np.intp]  # beams sorted by floor X
     floor_x_sorted: NDArray[np.float64]
     floor_mm: NDArray[np.float64]  # (K, 3)
-    # the floor points binned in bands of Y (``_BAND_MM``), sorted by (band, X): one sorted
-    # key band·span + X per beam, so a disk's neighbours are a few short runs (_beams_near)
-    band_key_sorted: NDArray[np.float64]  # (K,)
-    band_order: NDArray[np.intp]  # (K,) beams in key order
+    # the floor points binned in square cells of ``_CELL_MM`` (bands of Y, then X), sorted by
+    # (band, X): a disk's neighbours are a few short runs of this order (_beams_near)
+    cell_order: NDArray[np.intp]  # (K,) beams sorted by (band, X)
+    cell_start: NDArray[np.intp]  # (bands·cols + 1,) first position of each cell in that order
     x_rank: NDArray[np.intp]  # (K,) each beam's position in x_order
-    band_origin_mm: tuple[float, float, float]  # (min X, min Y, span) of the keys
+    cell_origin_mm: tuple[float, float]  # (min X, min Y) of the floor points
+    cell_shape: tuple[int, int]  # (bands, cols)
 
     @classmethod
     def from_model(cls, rig: StereoRig, laser: LaserModel) -> BeamTracks:
@@ -393,9 +396,13 @@ class BeamTracks:
         x_rank = np.empty(len(order), np.intp)
         x_rank[order] = np.arange(len(order))
         x0, y0 = float(fl[:, 0].min()), float(fl[:, 1].min())
-        span = float(fl[:, 0].max()) - x0 + 3.0
-        key = np.floor((fl[:, 1] - y0) / _BAND_MM) * span + (fl[:, 0] - x0 + 1.0)
-        band_order = np.argsort(key, kind="stable").astype(np.intp)
+        band = np.floor((fl[:, 1] - y0) / _CELL_MM).astype(np.intp)
+        col = np.floor((fl[:, 0] - x0) / _CELL_MM).astype(np.intp)
+        shape = (int(band.max()) + 1, int(col.max()) + 1)
+        cell_order = np.lexsort((fl[:, 0], band)).astype(np.intp)
+        cell = band * shape[1] + col
+        counts = np.bincount(cell, minlength=shape[0] * shape[1])
+        cell_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
         return cls(
             alpha,
             beta,
@@ -409,10 +416,11 @@ class BeamTracks:
             order,
             laser.floor_mm[order, 0],
             np.asarray(laser.floor_mm),
-            key[band_order],
-            band_order,
+            cell_order,
+            cell_start,
             x_rank,
-            (x0, y0, span),
+            (x0, y0),
+            shape,
         )
 
     def slope_sigma(self, beam: NDArray[np.intp], u: NDArray[np.float64]) -> NDArray:
@@ -480,33 +488,32 @@ def _beams_near(
     tr: BeamTracks, xy: NDArray[np.float64], radius: NDArray[np.float64]
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """(query, beam) for every beam whose floor point lies within ``radius`` of ``xy``, sorted
-    by query, then by the beam's floor X. Searched in the Y bands the disk touches (a superset,
-    widened by ``_EPS_MM``), then tested exactly."""
-    x0, y0, span = tr.band_origin_mm
-    n_bands = int(tr.band_key_sorted[-1] // span) + 1
+    by query, then by the beam's floor X. Searched in the cells the disk's bounding square
+    touches (a superset, widened by ``_EPS_MM``), then tested exactly."""
+    x0, y0 = tr.cell_origin_mm
+    n_bands, n_cols = tr.cell_shape
     r = radius + _EPS_MM
-    b_lo = np.clip(np.floor((xy[:, 1] - r - y0) / _BAND_MM), 0, n_bands - 1).astype(np.intp)
-    b_hi = np.clip(np.floor((xy[:, 1] + r - y0) / _BAND_MM), 0, n_bands - 1).astype(np.intp)
-    qb, pos_b = _expand_ranges(b_lo, b_hi + 1)  # (query, band) pairs
-    base = pos_b * span
-    xa = np.clip(xy[qb, 0] - r[qb] - x0 + 1.0, 0.0, span - 1.0)
-    xb = np.clip(xy[qb, 0] + r[qb] - x0 + 1.0, 0.0, span - 1.0)
-    lo = np.searchsorted(tr.band_key_sorted, base + xa, side="left")
-    hi = np.searchsorted(tr.band_key_sorted, base + xb, side="right")
-    own, pos = _expand_ranges(lo, hi)
+    b_lo = np.clip(np.floor((xy[:, 1] - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    b_hi = np.clip(np.floor((xy[:, 1] + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    c_lo = np.clip(np.floor((xy[:, 0] - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    c_hi = np.clip(np.floor((xy[:, 0] + r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    qb, band = _expand_ranges(b_lo, b_hi + 1)  # (query, band) pairs
+    row = band * n_cols
+    # one run per (query, band): the cells c_lo … c_hi lie next to each other in cell order
+    own, pos = _expand_ranges(tr.cell_start[row + c_lo[qb]], tr.cell_start[row + c_hi[qb] + 1])
     q = qb[own]
-    k = tr.band_order[pos]
+    k = tr.cell_order[pos]
     d = np.hypot(tr.floor_mm[k, 0] - xy[q, 0], tr.floor_mm[k, 1] - xy[q, 1])
     ok = d <= radius[q]
     q, k = q[ok], k[ok]
-    order = np.lexsort((tr.x_rank[k], q))
+    order = np.argsort(q * len(tr.x_rank) + tr.x_rank[k], kind="stable")
     return q[order], k[order]
 
 
-#: Width of the Y bands in which :func:`_beams_near` looks for floor points, mm (any width
+#: Side of the square cells in which :func:`_beams_near` looks for floor points, mm (any size
 #: gives the same answer; ≈ the radius of a typical search disk keeps the runs short).
-_BAND_MM = 50.0
-#: The bands and runs searched are widened by this much, so rounding never loses a beam, mm.
+_CELL_MM = 50.0
+#: The cells searched are widened by this much, so rounding never loses a beam, mm.
 _EPS_MM = 1e-6
 
 

@@ -96,6 +96,11 @@ class PerceptionSettings(Settings):
     # a frame pair awaited this long (or a camera error) counts as the cameras lost: speed
     # capped at safety.camera_lost_speed_mm_s until a pair arrives (30 fps: 2.4 frame times)
     camera_silence_s: float = setting(0.08, 0.02, 2.0)
+    # this many clouds in a row that do not fit the calibration (omnid.core.pipeline's
+    # CalibrationHealth) mean the rig was knocked: calibration_lost, forward refused until one
+    # fits; a shorter run (a frame the laser lit half, a glare) only keeps those clouds out of
+    # the map, and perception staleness stops the chair if nothing usable follows
+    calibration_lost_clouds: int = setting(3, 1, 100)
     # a perceive call longer than this: worker killed, restarted
     worker_timeout_s: float = setting(1.0, 0.05, 30.0)
     # the worker process yields the CPU to the control loop (0 = as is)

@@ -184,8 +184,9 @@ class ControlCore:
         self.halt = False  # shutting down: stop at the emergency rate whatever the rider asks
         self.status: StatusSample | None = None
         self.perception_time_s: float | None = None
-        # the last capture did not fit the calibration (the rig was knocked): no forward motion
+        # captures in a row did not fit the calibration (the rig was knocked): no forward motion
         self.calibration_lost = False
+        self.misfit_clouds = 0  # clouds in a row that did not fit the calibration
         # the last capture had dots no known beam explains (floor-only calibration): not used
         self.not_understood = False
         self.last_report: CycleReport | None = None
@@ -270,16 +271,31 @@ class ControlCore:
         for the motion since then."""
         fit = cloud.calibration_fit
         if math.isfinite(fit) and fit < _MIN_CALIBRATION_FIT:
-            # garbage in: keep it out of the map, and refuse forward motion until a capture
-            # fits again (omnid.core.pipeline.CalibrationHealth)
-            if not self.calibration_lost:
+            # garbage in: keep it out of the map; several in a row mean the rig was knocked —
+            # refuse forward motion until a capture fits again (one alone is a bad frame: a
+            # laser switching during the exposure, glare; it is only dropped)
+            self.misfit_clouds += 1
+            if (
+                not self.calibration_lost
+                and self.misfit_clouds >= self.config.perception.calibration_lost_clouds
+            ):
                 log.error(
-                    "calibration_lost: only %.0f %% of the dots lie on a calibrated laser beam: "
-                    "the rig has moved since calibration; forward motion refused (recalibrate)",
+                    "calibration_lost: only %.0f %% of the dots lie on a calibrated laser beam "
+                    "in %d captures in a row: the rig has moved since calibration; forward "
+                    "motion refused (recalibrate)",
+                    100 * fit,
+                    self.misfit_clouds,
+                )
+                self.calibration_lost = True
+            elif not self.calibration_lost:
+                log.info(
+                    "perception: a capture does not fit the calibration (%.0f %% of the dots on "
+                    "a beam): not used",
                     100 * fit,
                 )
-            self.calibration_lost = True
             return
+        if math.isfinite(fit):
+            self.misfit_clouds = 0
         if cloud.not_understood >= _MIN_NOT_UNDERSTOOD:
             # dots off the floor that no known beam explains (floor-only calibration): that area
             # is not free space, and the capture is kept out of the map — perception goes stale

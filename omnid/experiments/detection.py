@@ -233,8 +233,49 @@ def _light(
     return mean_spot(cam, rc, sigma_px, peak_gray, spots, window[0], window[1])[1]
 
 
+def _spot_jacobian(
+    cam: MirrorCamera,
+    spots: SpotModel,
+    p: NDArray[np.float64],
+    sigma_px: float,
+    peak_gray: float,
+    window: tuple[tuple[int, int], tuple[int, int]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """One dot's expected light in ``window``: (its profile, profile + halo, the derivatives
+    (P, 4) of the latter with respect to row, col, brightness and blur σ)."""
+    delta = 0.02
+    dot, mu = mean_spot(cam, p, sigma_px, peak_gray, spots, window[0], window[1])
+    dr, dc = np.array([delta, 0.0]), np.array([0.0, delta])
+
+    def slope(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.float64]:
+        return ((hi - lo) / (2 * delta)).ravel()
+
+    a, s = peak_gray, sigma_px
+    jac = np.column_stack(
+        [
+            slope(
+                _light(cam, spots, p - dr, s, a, window), _light(cam, spots, p + dr, s, a, window)
+            ),
+            slope(
+                _light(cam, spots, p - dc, s, a, window), _light(cam, spots, p + dc, s, a, window)
+            ),
+            mu.ravel() / max(a, 1e-9),
+            slope(
+                _light(cam, spots, p, s - delta, a, window),
+                _light(cam, spots, p, s + delta, a, window),
+            ),
+        ]
+    )
+    return dot, mu, jac
+
+
 def centre_bound_px(
-    cs: Case, camera: int, options: RenderOptions | None = None, max_dots: int = 40, seed: int = 0
+    cs: Case,
+    camera: int,
+    options: RenderOptions | None = None,
+    max_dots: int = 40,
+    seed: int = 0,
+    joint: bool = False,
 ) -> NDArray[np.float64]:
     """The Cramér–Rao lower bound of the centre error (px, √(var_row + var_col)) of up to
     ``max_dots`` isolated dots of one camera of a case (a random sample), from what made the
@@ -252,9 +293,14 @@ def centre_bound_px(
       contrast and correlation, i.e. noise of covariance c²·μ_i μ_j ρ_ij added to the pixels'
       own (the bound is then the Gaussian one, F = Jᵀ C⁻¹ J, the covariance taken as known).
 
-    Neighbours are taken as known (the dots are isolated: their tails are not counted), so
-    the bound is what an ideal estimator reaches; a measured RMS above it is bias (model
-    mismatch, neighbours, clipping handled wrong) or inefficiency.
+    ``joint=False``: the neighbours are known exactly (their light is not in the window) —
+    what an ideal estimator reaches on a lone dot. ``joint=True``: every other dot whose
+    centre lies in the window (±(3.5 σ + 4) px) is drawn there with its own unknown centre,
+    brightness and blur, and the bound is that of the dot's centre with all of them unknown
+    (the neighbours' light also raises the noise and the clipping): what crowding costs any
+    estimator (slightly pessimistic: a neighbour's pixels outside the window are not used).
+    A measured RMS above the joint bound is bias or inefficiency (model mismatch, neighbours
+    not taken out, clipping handled suboptimally).
     """
     opts = options or RenderOptions.realistic(spots=cs.spots)
     spots = cs.spots
@@ -263,54 +309,45 @@ def centre_bound_px(
     cols = slice(0, 2) if camera == 1 else slice(2, 4)
     flux_all = hits_flux(cs.hits, cs.rig, spots)[vis, camera - 1]
     pix = cs.hits.pixels[vis][:, cols]
-    inside = cam.in_disk(pix, EDGE_MARGIN_PX)
-    pix, flux_all = pix[inside], flux_all[inside]
-    iso = isolated(pix, spots)
+    in_image = cam.in_disk(pix)
+    pix, flux_all = pix[in_image], flux_all[in_image]
+    scored = cam.in_disk(pix, EDGE_MARGIN_PX)
+    iso = isolated(pix[scored], spots)
     rng = np.random.default_rng(seed)
-    idx = np.flatnonzero(iso)
+    idx = np.flatnonzero(scored)[iso]
     if len(idx) > max_dots:
         idx = np.sort(rng.choice(idx, max_dots, replace=False))
-    sig = spots.sigma_px * (1.0 + spots.sigma_jitter * rng.uniform(-1, 1, len(idx)))
-    amp = spots.peak_gray * (1.0 + spots.peak_jitter * rng.uniform(-1, 1, len(idx)))
-    amp = amp * flux_all[idx]
+    sig_all = spots.sigma_px * (1.0 + spots.sigma_jitter * rng.uniform(-1, 1, len(pix)))
+    amp_all = spots.peak_gray * (1.0 + spots.peak_jitter * rng.uniform(-1, 1, len(pix)))
+    amp_all = amp_all * flux_all
     mask = np.asarray(cs.capture.mask1 if camera == 1 else cs.capture.mask2, dtype=np.float64)
     if mask.ndim == 3:
         mask = mask[..., 1]
     grow = 1.0 + max(spots.rim_radial, spots.rim_tangential, 0.0)
     halo_reach = 1.6 * spots.halo_sigma_px if spots.halo_fraction > 0 else 0.0
     grains = spots.speckle_contrast > 0 or (spots.halo_fraction > 0 and spots.halo_speckle > 0)
-    h_max = 11 if grains else 16
-    half = int(min(max(math.ceil(3.5 * spots.sigma_px * grow), math.ceil(halo_reach), 4), h_max))
+    h_max = (11 if grains else 16) + (3 if joint else 0)
+    half = max(math.ceil(3.5 * spots.sigma_px * grow), math.ceil(halo_reach), 4)
+    half = int(min(half + (4 if joint else 0), h_max))
     shape = (2 * half + 1, 2 * half + 1)
     corr_dot = _grain_correlation(shape, spots.speckle_grain_px) if grains else None
     corr_halo = _grain_correlation(shape, 0.8) if grains else None
-    delta = 0.02
     out = np.full(len(idx), np.nan)
-    for n, (k, s, a) in enumerate(zip(idx, sig, amp, strict=True)):
+    for n, k in enumerate(idx):
         p = pix[k]
         tl = (round(p[0]) - half, round(p[1]) - half)
         if tl[0] < 0 or tl[1] < 0 or tl[0] + shape[0] > mask.shape[0]:
             continue
         if tl[1] + shape[1] > mask.shape[1]:
             continue
-
-        dot, mu = mean_spot(cam, p, s, a, spots, tl, shape)
-        dr, dc = np.array([delta, 0.0]), np.array([0.0, delta])
         win = (tl, shape)
-
-        def slope(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.float64]:
-            return (hi - lo) / (2 * delta)
-
-        jac = [
-            slope(_light(cam, spots, p - dr, s, a, win), _light(cam, spots, p + dr, s, a, win)),
-            slope(_light(cam, spots, p - dc, s, a, win), _light(cam, spots, p + dc, s, a, win)),
-            mu / max(a, 1e-9),
-            np.ones(shape),
-            slope(
-                _light(cam, spots, p, s - delta, a, win), _light(cam, spots, p, s + delta, a, win)
-            ),
-        ]
-        J = np.column_stack([j.ravel() for j in jac])
+        dot, mu, J = _spot_jacobian(cam, spots, p, sig_all[k], amp_all[k], win)
+        J = np.column_stack([J[:, :3], np.ones(J.shape[0]), J[:, 3]])
+        if joint:
+            near = np.flatnonzero(np.abs(pix - p).max(axis=1) <= half)
+            for j in near[near != k]:
+                dot_j, mu_j, J_j = _spot_jacobian(cam, spots, pix[j], sig_all[j], amp_all[j], win)
+                dot, mu, J = dot + dot_j, mu + mu_j, np.column_stack([J, J_j])
         scene = mask[tl[0] : tl[0] + shape[0], tl[1] : tl[1] + shape[1]].ravel()
         lit = scene * (1.0 + opts.flicker)
         base_mean = lit + mu.ravel()
@@ -336,8 +373,10 @@ def centre_bound_px(
     return out[np.isfinite(out)]
 
 
-def bound_rms_px(cs: Case, max_dots: int = 40) -> float:
+def bound_rms_px(cs: Case, max_dots: int = 40, joint: bool = False) -> float:
     """The case's Cramér–Rao bound as an RMS over its isolated dots (both cameras), px — the
-    figure to set next to the measured centre RMS."""
-    b = np.concatenate([centre_bound_px(cs, k, max_dots=max_dots, seed=k) for k in (1, 2)])
+    figure to set next to the measured centre RMS (``joint``: see :func:`centre_bound_px`)."""
+    b = np.concatenate(
+        [centre_bound_px(cs, k, max_dots=max_dots, seed=k, joint=joint) for k in (1, 2)]
+    )
     return float(np.sqrt(np.mean(b * b))) if len(b) else float("nan")

@@ -38,8 +38,9 @@ from numpy.typing import NDArray
 from omnid.core.geometry import StereoRig
 from omnid.core.types import PointClass, StereoCapture
 from omnid.sim.laser import LaserProjector, random_laser
-from omnid.sim.render import RenderOptions, render_camera_pair
+from omnid.sim.render import RenderOptions, render_hits
 from omnid.sim.rigs import random_rig
+from omnid.sim.scenes import rig_rect
 from omnid.sim.world import Box, DropOff, LaserHits, RigMount, World, cast_laser
 
 SCENE_CLASSES: tuple[str, ...] = (
@@ -88,15 +89,8 @@ def rig_case(index: int, seed: int = 0) -> RigCase:
     return RigCase(index, kind, rig, laser, opts)
 
 
-def _rect(
-    mount: RigMount, x0: float, x1: float, y0: float, y1: float
-) -> tuple[float, float, float, float]:
-    """Rig-frame rectangle (X ahead, rig Y right) → world (x_min, x_max, y_min, y_max)."""
-    return (x0 + mount.x_offset_mm, x1 + mount.x_offset_mm, -max(y0, y1), -min(y0, y1))
-
-
 def _box(mount: RigMount, x0: float, x1: float, y0: float, y1: float, h: float) -> Box:
-    return Box(*_rect(mount, x0, x1, y0, y1), height_mm=h)
+    return Box(*rig_rect(x0, x1, y0, y1, mount), height_mm=h)
 
 
 def draw_scene(kind: str, mount: RigMount, rng: np.random.Generator) -> World:
@@ -119,7 +113,7 @@ def draw_scene(kind: str, mount: RigMount, rng: np.random.Generator) -> World:
     if kind == "dropoff":
         x0 = u(600, 1500)
         y0 = u(-2500, -300)
-        pit = DropOff(*_rect(mount, x0, x0 + 3000, y0, 3000), depth_mm=u(80, 300))
+        pit = DropOff(*rig_rect(x0, x0 + 3000, y0, 3000, mount), depth_mm=u(80, 300))
         return World((), (pit,))
     if kind == "passage":
         x0, half, h = u(600, 1200), u(350, 550), u(300, 800)
@@ -142,15 +136,7 @@ def draw_scene(kind: str, mount: RigMount, rng: np.random.Generator) -> World:
 def capture(case: RigCase, world: World, seed: int) -> tuple[LaserHits, StereoCapture]:
     """Ray-cast and render ``world`` on the case's rig and laser (each camera shows what it sees)."""
     hits = cast_laser(world, (0.0, 0.0, 0.0), case.mount, case.laser, case.rig)
-    rng = np.random.default_rng(seed)
-    rig = case.rig
-    m1, b1 = render_camera_pair(
-        rig.cam1, rig.cam1.project(hits.xyz[hits.visible1]), case.render, rng
-    )
-    m2, b2 = render_camera_pair(
-        rig.cam2, rig.cam2.project(hits.xyz[hits.visible2]), case.render, rng
-    )
-    return hits, StereoCapture(m1, b1, m2, b2)
+    return hits, render_hits(case.rig, hits, seed, case.render, beam_light=False)
 
 
 def installer_extras(case: RigCase, seed: int) -> list[StereoCapture]:

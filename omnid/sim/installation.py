@@ -12,12 +12,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from omnid.core.geometry import StereoRig
 from omnid.core.types import StereoCapture
 from omnid.sim.laser import LaserProjector
-from omnid.sim.render import RenderOptions, render_camera_pair
+from omnid.sim.render import RenderOptions, render_hits
+from omnid.sim.scenes import rig_rect
 from omnid.sim.world import Box, RigMount, World, cast_laser
 
 #: The installer's extra scenes, rig frame (X ahead, Y right), mm: (x0, x1, y0, y1, height).
@@ -29,9 +28,7 @@ EXTRA_SCENES: dict[str, tuple[float, float, float, float, float]] = {
 
 def _world(rect: tuple[float, float, float, float, float], mount: RigMount) -> World:
     x0, x1, y0, y1, h = rect
-    return World(
-        (Box(x0 + mount.x_offset_mm, x1 + mount.x_offset_mm, -max(y0, y1), -min(y0, y1), h),)
-    )
+    return World((Box(*rig_rect(x0, x1, y0, y1, mount), height_mm=h),))
 
 
 def render_world(
@@ -42,13 +39,10 @@ def render_world(
     seed: int,
     options: RenderOptions | None = None,
 ) -> StereoCapture:
-    """A capture of ``world`` with the chair at the origin; each camera shows what it sees."""
+    """A capture of ``world`` with the chair at the origin; each camera shows what it sees,
+    every dot of the reference light (:func:`~omnid.sim.render.render_hits`)."""
     hits = cast_laser(world, (0.0, 0.0, 0.0), mount, laser, rig)
-    rng = np.random.default_rng(seed)
-    opts = options or RenderOptions()
-    m1, b1 = render_camera_pair(rig.cam1, rig.cam1.project(hits.xyz[hits.visible1]), opts, rng)
-    m2, b2 = render_camera_pair(rig.cam2, rig.cam2.project(hits.xyz[hits.visible2]), opts, rng)
-    return StereoCapture(m1, b1, m2, b2)
+    return render_hits(rig, hits, seed, options, beam_light=False)
 
 
 def installation_captures(
@@ -87,14 +81,14 @@ def calibrate_installed(
 
 
 def write_capture(capture: StereoCapture, directory: str | Path, prefix: str = "") -> Path:
-    """Write ``{prefix}mask1.png … {prefix}base2.png`` into ``directory`` (created)."""
-    import cv2
+    """Write ``{prefix}mask1.png … {prefix}base2.png`` into ``directory`` (created), each
+    atomically (:func:`omnid.io_images.write_png`)."""
+    from omnid.io_images import write_png
 
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     for name in ("mask1", "base1", "mask2", "base2"):
-        if not cv2.imwrite(str(out / f"{prefix}{name}.png"), getattr(capture, name)):
-            raise OSError(f"cannot write {out / f'{prefix}{name}.png'}")
+        write_png(out / f"{prefix}{name}.png", getattr(capture, name))
     return out
 
 

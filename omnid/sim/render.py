@@ -807,15 +807,19 @@ def render_hits(
     hits: LaserHits,
     seed: int | np.random.Generator = 0,
     options: RenderOptions | None = None,
+    beam_light: bool = True,
 ) -> StereoCapture:
     """Mask/base capture of cast laser hits: each camera shows the dots it sees
     (``visible1`` / ``visible2``), each with its beam's power and, with ``spots.shading``, the
-    surface's shading (:func:`hits_flux`). The true centre of each dot is its projection
-    ``rig.project(hits.xyz)`` (= ``hits.pixels``)."""
+    surface's shading (:func:`hits_flux`). ``beam_light=False``: every dot of the reference
+    light instead (how the simulated installer's captures and the random-rig evaluation are
+    rendered). The true centre of each dot is its projection ``rig.project(hits.xyz)``
+    (= ``hits.pixels``)."""
     opts = options or RenderOptions()
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    flux = hits_flux(hits, rig, opts.spots)
+    flux = hits_flux(hits, rig, opts.spots) if beam_light else None
     images: list[NDArray[np.uint8]] = []
     for k, (cam, vis) in enumerate(((rig.cam1, hits.visible1), (rig.cam2, hits.visible2))):
-        images.extend(render_camera_pair(cam, cam.project(hits.xyz[vis]), opts, rng, flux[vis, k]))
+        light = None if flux is None else flux[vis, k]
+        images.extend(render_camera_pair(cam, cam.project(hits.xyz[vis]), opts, rng, light))
     return StereoCapture(images[0], images[1], images[2], images[3])

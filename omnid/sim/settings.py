@@ -32,6 +32,10 @@ class SimSettings:
     # the daemon's (one) perception worker is busy at least this long per job: a slower
     # computer than this one; newer jobs supersede a waiting one (0: as measured)
     worker_period_s: float = 0.0
+    # perceive's computing time charged as virtual time per cloud: None, as measured on the
+    # wall clock (a slow or loaded computer reacts late, as the chair would); a number, that
+    # long on any computer — the run is then the same however loaded the machine is (tests)
+    perceive_time_s: float | None = None
     perception: PerceptionMode = "truth"
     control_unit: Literal["emulator", "direct"] = "emulator"
     truth_noise_mm: float = 3.0  # Gaussian noise on truth-mode points (per axis)
@@ -72,6 +76,11 @@ class SimSettings:
             require(v is None or v > 0, name, "must be positive")
         require(self.perception_latency_s >= 0, "perception_latency_s", "must be ≥ 0")
         require(self.worker_period_s >= 0, "worker_period_s", "must be ≥ 0")
+        require(
+            self.perceive_time_s is None or self.perceive_time_s >= 0,
+            "perceive_time_s",
+            "must be ≥ 0 (or None: as measured)",
+        )
         require(self.truth_noise_mm >= 0, "truth_noise_mm", "must be ≥ 0")
         require(self.tilt_noise_deg >= 0, "tilt_noise_deg", "must be ≥ 0")
         require(self.story_rest_s >= 0, "story_rest_s", "must be ≥ 0")

@@ -6,7 +6,8 @@ the same virtual time: the rider's head pose, the control unit's watchdog, the d
 ``step(now_s)`` and the capture time of each perception result. Perception's own computing time is
 measured on the wall clock and charged as virtual latency (a result is delivered
 ``max(measured, perception_latency_s)`` after its capture), so a slow pipeline makes the chair
-react late in the simulation exactly as it would on the chair.
+react late in the simulation exactly as it would on the chair; ``perceive_time_s`` charges a
+fixed time instead, so that a run is the same on a loaded machine (tests).
 
 Per physics tick (``physics_dt_s``, integer tick counts so rates never drift):
 
@@ -509,8 +510,8 @@ class Simulator:
                 errors.append((now, f"{type(exc).__name__}: {exc}"))
                 log.warning("perception cycle failed at t=%.2f s: %s", now, exc)
                 return
-            took = self.perceive_s
-            t_perc.append(took)
+            took = self.perceive_s if s.perceive_time_s is None else s.perceive_time_s
+            t_perc.append(self.perceive_s)
             self._worker_free_s = now + max(took, s.worker_period_s)
             at = max(now + took, job.t_s + s.perception_latency_s)
             pending.append((at, job.t_s, cloud, job.base.source.pose))

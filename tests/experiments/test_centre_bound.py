@@ -62,3 +62,15 @@ def test_censored_information_goes_from_all_to_nothing():
     tail = 0.5 * (1 - erf(zc / sqrt(2)))
     score = np.where(y < zc, y, exp(-0.5 * zc * zc) / sqrt(2 * pi) / tail)
     assert abs(score.var() + score.mean() ** 2 - _censored_information(np.array([zc]))[0]) < 0.01
+
+
+def test_unknown_neighbours_raise_the_bound_only_where_dots_crowd():
+    # gaussian case 1: σ 2.8 px, dots 7–10 px apart (measured 0.042 → 0.059 px); case 3:
+    # dots far apart for their size (0.044 → 0.041–0.044: the same within the dot sample).
+    crowded = detection.case("gaussian", 1)
+    assert detection.bound_rms_px(crowded, 10, joint=True) > 1.2 * detection.bound_rms_px(
+        crowded, 10
+    )
+    apart = detection.case("gaussian", 3)
+    ratio = detection.bound_rms_px(apart, 10, joint=True) / detection.bound_rms_px(apart, 10)
+    assert 0.8 < ratio < 1.15

@@ -113,11 +113,10 @@ def test_a_recording_cut_short_replays_what_is_complete(tmp_path: Path, capsys) 
 def test_another_rig_is_refused(tmp_path: Path, capsys) -> None:
     from omnid.core.calibration import calibrate_from_capture
     from omnid.core.geometry import StereoRig
-    from omnid.sim.laser import ideal_lattice  # today's calibration assumes the lattice
-    from omnid.sim.render import render_capture
+    from omnid.sim.installation import installation_captures
 
     rig = StereoRig.nominal(floor_depth_mm=700.0)
-    cap = render_capture(rig, ideal_lattice().on_plane(700.0), seed=1)
+    cap = installation_captures(rig, seed=1)[0]  # the empty floor, the simulator's laser
     calib = tmp_path / "other.yaml"
     calibrate_from_capture(cap, 700.0, 200.0).save(calib)
     line = one_line(capsys, ["replay", str(DATA / "pipeline_capture.mcap"), "--calib", str(calib)])

@@ -50,7 +50,7 @@ def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refus
 def test_a_thin_post_with_pipeline_perception_stops_the_chair_before_it():
     # the shipped stream capture on a worker perceiving at most 10 clouds/s (the suite's time;
     # as tests/scenarios/test_scenarios.py)
-    slower = {"worker_period_s": 0.1}
+    slower = {"worker_period_s": 0.1, "perceive_time_s": 0.01}
     for kind in ("joystick", "tilt"):
         r = run_trial(SCENARIOS["thin post"](kind, 0), "pipeline", sim_changes=slower)  # type: ignore[arg-type]
         assert r.contacts == 0

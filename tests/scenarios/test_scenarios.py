@@ -26,7 +26,7 @@ from omnid.sim.world import Box, DropOff
 # computer that perceives at most 10 clouds/s (half this one's rate; the worker drops what it
 # cannot take, as the daemon's does): the suite's time, and the closed loop holds on a slower
 # computer too. The full rate in the closed loop: tests/sim/test_sim_camera.py.
-PIPELINE = SimSettings(perception="pipeline", worker_period_s=0.1)
+PIPELINE = SimSettings(perception="pipeline", worker_period_s=0.1, perceive_time_s=0.01)
 TRUTH = SimSettings(perception="truth")
 
 

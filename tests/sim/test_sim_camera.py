@@ -93,6 +93,7 @@ def test_stream_capture_in_the_closed_loop_at_full_speed(seed):
         laser_delay_s=0.008,
         laser_jitter_s=0.004,
         camera=CameraModel(exposure_s=0.0064, textured="world"),
+        perceive_time_s=0.008,  # perceive's measured p50: the policy's rate, not this machine's
     )
     sim = Simulator(course, core, settings, joystick=JoystickScript(((0.0, 1.0, 0.0),)))
     false_in_path = []

@@ -256,7 +256,12 @@ def _story_run(
 
     _core()
     core = make_core(joystick=True, tilt=True)  # head tilt; the joystick only to back away
-    settings = SimSettings(perception=perception, seed=seed, worker_period_s=worker_period_s)  # type: ignore[arg-type]
+    settings = SimSettings(
+        perception=perception,  # type: ignore[arg-type]
+        seed=seed,
+        worker_period_s=worker_period_s,
+        perceive_time_s=0.01,  # the same run on a loaded machine
+    )
     return Simulator(builtin_course(), core, settings, rider=demo_story()).run(duration_s)
 
 
