@@ -263,8 +263,9 @@ def suite(args: argparse.Namespace) -> int:
     changes: dict[str, object] = {}
     for item in args.set:
         key, _, value = item.partition("=")
-        changes[key] = value if not value.replace(".", "", 1).replace("-", "", 1).isdigit() \
-            else float(value)  # fmt: skip
+        flags = {"true": True, "false": False}
+        changes[key] = flags[value.lower()] if value.lower() in flags else value \
+            if not value.replace(".", "", 1).replace("-", "", 1).isdigit() else float(value)  # fmt: skip
     names = [n for n in SCENARIOS if not args.scenarios or n in args.scenarios.split(",")]
     print(f"suite: {len(names)} scenarios x {len(RIDERS)} riders x {args.seeds} seeds, "
           f"perception {args.perception}, safety changes {changes or 'none'}", flush=True)  # fmt: skip

@@ -45,7 +45,11 @@ or the margin be reached. A move whose first contact is a drop-off is never an e
 (``dropoff_stop`` stays a refusal). Reason ``escape_creep``.
 
 The most restrictive limit wins; the rider's v and ω are scaled by one factor, so the chair keeps
-the path the rider asked for. Cells under the chair itself (the footprint without its margin)
+the path the rider asked for — except that, with ``soften`` on, a limited turn is softened: a small set
+of nearby twists (:meth:`SafetyLayer.soften_candidates`: gentler turns, less or no travel, a turn
+in place with a forward component) is checked by all the same rules, and the allowed twist with
+the most progress along the asked one, less its deviation from it, runs instead (reason
+``softened``); the request's own scaled twist is one of the set, standing still scores 0. Cells under the chair itself (the footprint without its margin)
 at the start are ignored: the vision system cannot see there, and the chair physically occupies
 them. Cells inside the margin count: a motion that brings one nearer is refused at once.
 
@@ -82,6 +86,7 @@ class Reason(Enum):
     UNKNOWN_AHEAD = "unknown_ahead"
     UNKNOWN_STOP = "unknown_stop"  # the sweep would enter space never seen: refused
     UNKNOWN_CREEP = "unknown_creep"  # ... crossed at creep speed (policy creep, blind band)
+    SOFTENED = "softened"  # the asked turn was limited: the nearest allowed twist runs instead
     BUMP = "bump"  # a wheel did not turn as commanded: stopped, that direction refused
     PERCEPTION_STALE = "perception_stale"
     CALIBRATION_LOST = "calibration_lost"  # the captures no longer fit the calibration
@@ -147,6 +152,12 @@ class SafetySettings(Settings):
     escape_tolerance_mm: float = setting(
         2.0, 0.0, 50.0
     )  # gap decrease still counted as "not closing"
+    # softening (module docstring): a limited turn may become the nearest allowed twist of a
+    # small candidate set (gentler turns, turns with less or no travel, a turn in place with a
+    # forward component of at most this, fastest point); off: the request is only scaled.
+    # Off by default: it wedges the CI soak's random rider (docs/benchmarks.md)
+    soften: bool = False
+    soften_forward_mm_s: float = setting(100.0, 0.0, 300.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -746,10 +757,90 @@ class SafetyLayer:
         """The allowed twist for a requested (v mm/s, ω rad/s), given the map and its age (s).
 
         ``evidence`` / ``evidence_key``: the map's exact blocking evidence (see :meth:`sweep`);
-        ``grid`` gives the unknown cells either way."""
-        s = self.settings
+        ``grid`` gives the unknown cells either way. A limited turn is softened (module
+        docstring, :meth:`soften`)."""
         if not (math.isfinite(v_mm_s) and math.isfinite(omega_rad_s)):
             return self._report(SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.FAULT,)), now_s)
+        decision = self._limit(grid, v_mm_s, omega_rad_s, perception_age_s, evidence, evidence_key)
+        if decision.scale < 1.0 and omega_rad_s != 0.0 and self.settings.soften:
+            decision = self.soften(
+                grid, v_mm_s, omega_rad_s, decision, perception_age_s, evidence, evidence_key
+            )
+        return self._report(decision, now_s)
+
+    def soften_candidates(self, v_mm_s: float, omega_rad_s: float) -> list[tuple[float, float]]:
+        """The twists (mm/s, rad/s) a limited turn (v, ω ≠ 0) may be softened into: the same turn
+        direction, never a reversed travel direction, never faster than asked — the turn at
+        1/2 and 1/4 of ω (a larger radius), an arc without its travel (a turn in place) or with
+        half of it, an arc without its turn; a turn in place also with a forward component
+        (``soften_forward_mm_s`` and half of it, fastest point) at ω and ω/2: its turn centre
+        moved ahead so that the tail swings through less of what lies beside the chair."""
+        w = omega_rad_s
+        out = [(v_mm_s, 0.5 * w), (v_mm_s, 0.25 * w)]
+        if v_mm_s != 0.0:
+            out += [(0.0, w), (0.5 * v_mm_s, w), (0.5 * v_mm_s, 0.5 * w), (v_mm_s, 0.0)]
+        else:
+            f = self.settings.soften_forward_mm_s
+            if f > 0.0:
+                out += [(f, w), (0.5 * f, w), (f, 0.5 * w), (0.5 * f, 0.5 * w)]
+        return out
+
+    def soften(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        limited: SafetyDecision,
+        perception_age_s: float | None,
+        evidence: Evidence | None = None,
+        evidence_key: object = None,
+    ) -> SafetyDecision:
+        """The nearest allowed twist to a limited request: each of :meth:`soften_candidates` is
+        checked exactly as a request would be (every rule applies to it), and the allowed twists
+        — the request's own limited one among them — are scored by progress along the asked
+        motion minus deviation from it, in mm/s of the footprint's motion (v, and ω times the
+        farthest corner's radius): ``a·d̂ − |a − (a·d̂)·d̂|``. Standing still scores 0, so a
+        candidate runs only if it moves the chair more the way the rider asked than aside; the
+        request's own limited twist wins ties. Reason ``softened`` with the candidate's own."""
+        r = self.r_max_mm
+        dx, dy = v_mm_s, omega_rad_s * r
+        norm = math.hypot(dx, dy)
+        ux, uy = dx / norm, dy / norm
+
+        def score(d: SafetyDecision) -> float:
+            ax, ay = d.v_mm_s, d.omega_rad_s * r
+            p = ax * ux + ay * uy
+            return p - math.hypot(ax - p * ux, ay - p * uy)
+
+        best, best_score = limited, score(limited)
+        for v, w in self.soften_candidates(v_mm_s, omega_rad_s):
+            d = self._limit(grid, v, w, perception_age_s, evidence, evidence_key)
+            sc = score(d)
+            if d.scale > 0.0 and sc > best_score + 1e-6:
+                best, best_score = d, sc
+        if best is limited:
+            return limited
+        u = abs(v_mm_s) + abs(omega_rad_s) * r
+        scale = min(1.0, (abs(best.v_mm_s) + abs(best.omega_rad_s) * r) / u)
+        return SafetyDecision(
+            best.v_mm_s,
+            best.omega_rad_s,
+            scale,
+            best.clearance_mm,
+            _unique([Reason.SOFTENED, *best.reasons]),
+        )
+
+    def _limit(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        perception_age_s: float | None,
+        evidence: Evidence | None,
+        evidence_key: object,
+    ) -> SafetyDecision:
+        """The request (v, ω) scaled by the most restrictive rule (no softening, no logging)."""
+        s = self.settings
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
         if u == 0.0:
             return SafetyDecision(0.0, 0.0, 1.0, math.inf)
@@ -806,10 +897,9 @@ class SafetyLayer:
             reasons.append(Reason.UNKNOWN_AHEAD)
             caps.append(s.unknown_speed_mm_s)
         scale = min(1.0, min(caps) / u)
-        decision = SafetyDecision(
+        return SafetyDecision(
             v_mm_s * scale, omega_rad_s * scale, scale, clearance, _unique(reasons)
         )
-        return self._report(decision, now_s)
 
     def _approach_cap(self, room_mm: float) -> float:
         """Speed cap (mm/s, fastest point) ``room_mm`` before the stop line: the time to reach it

@@ -15,7 +15,8 @@ import pytest
 from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid
 from omnid.daemon.safety import Reason, SafetyLayer, SafetySettings
 
-S = SafetySettings(escape_speed_mm_s=40.0)
+# the escape rule per twist: softening (which checks other twists by the same rules) off
+S = SafetySettings(escape_speed_mm_s=40.0, soften=False)
 SMALL = GridSettings(
     resolution_mm=25.0, x_min_mm=-1500.0, x_max_mm=1500.0, y_min_mm=-1500.0, y_max_mm=1500.0
 )

@@ -279,3 +279,64 @@ def test_cell_straddling_the_footprint_edge_blocks_only_motion_towards_it():
     layer = SafetyLayer(S)
     assert layer.check(g, 200.0, 0.0, 0.1).stopped  # pushing into it
     assert layer.check(g, -100.0, 0.0, 0.1).scale == 1.0  # backing away from it
+
+
+def test_a_limited_arc_is_softened_to_the_nearest_allowed_twist():
+    g = free_grid()
+    xs, ys = g.cell_centers()
+    # a box ahead-left, where a sharp left arc runs into it; straight on is clear
+    g.states[np.ix_((xs > 350) & (xs < 600), (ys > 350) & (ys < 700))] = CellState.OBSTACLE
+    layer = SafetyLayer(dataclasses.replace(S, soften=True))
+    plain = SafetyLayer(S)
+    asked = plain.check(g, 150.0, 0.5, perception_age_s=0.1)
+    assert asked.scale < 0.7 and Reason.APPROACH in asked.reasons
+    d = layer.check(g, 150.0, 0.5, perception_age_s=0.1)
+    assert Reason.SOFTENED in d.reasons
+    speed = abs(d.v_mm_s) + abs(d.omega_rad_s) * layer.r_max_mm  # fastest point
+    assert speed > abs(asked.v_mm_s) + abs(asked.omega_rad_s) * layer.r_max_mm
+    # the same turn direction, no faster, and allowed as it stands
+    assert 0.0 <= d.v_mm_s <= 150.0 and 0.0 <= d.omega_rad_s <= 0.5
+    assert plain.check(g, d.v_mm_s, d.omega_rad_s, perception_age_s=0.1).scale > 0.999
+
+
+def test_softening_keeps_every_rule_on_random_maps():
+    """Random boxes and unseen patches, random turns: a softened twist keeps the asked turn
+    direction and travel direction, is no faster than asked, and checked as a request by the
+    plain layer is allowed as it stands; a request the plain layer allows is never changed."""
+    rng = np.random.default_rng(3)
+    layer = SafetyLayer(dataclasses.replace(S, soften=True))
+    plain = SafetyLayer(S)
+    softened = 0
+    for _ in range(30):
+        g = free_grid()
+        xs, ys = g.cell_centers()
+        for _ in range(int(rng.integers(2, 5))):
+            # near one side of the chair, 20-400 mm from its footprint
+            side, gap = int(rng.integers(4)), float(rng.uniform(20.0, 400.0))
+            along = float(rng.uniform(-900.0, 500.0))
+            if side < 2:  # front, rear
+                x0 = S.footprint_front_mm + gap if side == 0 else -S.footprint_rear_mm - gap - 300
+                y0 = float(rng.uniform(-600.0, 300.0))
+            else:  # left, right
+                x0 = along
+                y0 = (
+                    0.5 * S.footprint_width_mm + gap
+                    if side == 2
+                    else -0.5 * S.footprint_width_mm - gap - 300
+                )
+            box = np.ix_((xs > x0) & (xs < x0 + 300), (ys > y0) & (ys < y0 + 300))
+            g.states[box] = CellState.OBSTACLE if rng.random() < 0.6 else CellState.UNKNOWN
+        for _ in range(4):
+            v, w = float(rng.uniform(-100, 250)), float(rng.choice([-1, 1]) * rng.uniform(0.1, 0.6))
+            ref = plain.check(g, v, w, perception_age_s=0.1)
+            d = layer.check(g, v, w, perception_age_s=0.1)
+            if ref.scale == 1.0 or Reason.SOFTENED not in d.reasons:
+                assert (d.v_mm_s, d.omega_rad_s) == (ref.v_mm_s, ref.omega_rad_s)
+                continue
+            softened += 1
+            assert d.omega_rad_s * w >= 0.0 and abs(d.omega_rad_s) <= abs(w) + 1e-9
+            assert d.v_mm_s * v >= 0.0 or (v == 0.0 and d.v_mm_s >= 0.0)
+            assert abs(d.v_mm_s) <= max(abs(v), S.soften_forward_mm_s) + 1e-9
+            again = plain.check(g, d.v_mm_s, d.omega_rad_s, perception_age_s=0.1)
+            assert again.scale > 0.999, (v, w, d, again)
+    assert softened >= 5
