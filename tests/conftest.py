@@ -8,6 +8,15 @@ import pytest
 from omnid.core.geometry import StereoRig
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--soak-minutes",
+        type=float,
+        default=12.0,
+        help="simulated minutes of tests/scenarios/test_soak.py (12; the half hour: 30)",
+    )
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
