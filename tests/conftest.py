@@ -17,6 +17,25 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+# The long runs (closed loops, the soak, the real daemon against its emulators) first: with
+# pytest-xdist the last minute is then not one worker finishing a long test alone.
+_LONG_FIRST = (
+    "tests/scenarios/",
+    "tests/sim/test_simulator.py",
+    "tests/record/test_bench.py",
+    "tests/daemon/test_daemon_system.py",
+    "tests/sim/test_sim_camera.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> int:
+        path = item.nodeid.split("::", 1)[0]
+        return next((k for k, p in enumerate(_LONG_FIRST) if path.startswith(p)), len(_LONG_FIRST))
+
+    items.sort(key=rank)  # stable: the order within each group is kept
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
