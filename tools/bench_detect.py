@@ -30,7 +30,6 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -46,6 +45,7 @@ import numpy as np  # noqa: E402
 from omnid.core.detect import DetectionParams, _detect_best, detect_dots, to_gray  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
 from omnid.experiments import detection  # noqa: E402
+from omnid.experiments.machine import load_average, one_core  # noqa: E402
 from omnid.sim.laser import ideal_lattice  # noqa: E402
 from omnid.sim.render import SPOT_KINDS, RenderOptions, render_capture, visible_truth  # noqa: E402
 
@@ -353,13 +353,7 @@ def main() -> int:
         help="also score best with the experimental learned-shape joint fit (omnid.core.spotshape)",
     )
     args = ap.parse_args()
-    cv2.setNumThreads(1)
-    print(
-        f"python {platform.python_version()}, numpy {np.__version__}, cv2 {cv2.__version__}, "
-        f"one core (cv2 threads {cv2.getNumThreads()}, BLAS threads 1), {platform.machine()}, "
-        f"{os.cpu_count()} CPUs"
-    )
-    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(one_core(cv2))
     detectors: dict[str, Detector] = {"best": lambda m, b: detect_dots(m, b, "best")}
     old = load_module_at(args.before, "omnid/core/detect.py", "detect_before")
     if old is not None:
@@ -383,7 +377,7 @@ def main() -> int:
     standard_scene(args.repeats, detectors, trackpy)
     if not args.no_oracle:
         oracle_check(args.repeats)
-    print(f"\nload average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(f"\nload average after: {load_average()}")
     return 0
 
 

@@ -29,7 +29,6 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import platform  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 
@@ -43,6 +42,7 @@ from omnid.core.matching import match_dots  # noqa: E402
 from omnid.core.pipeline import perceive  # noqa: E402
 from omnid.core.triangulate import triangulate  # noqa: E402
 from omnid.core.types import PointCloud, StereoCapture  # noqa: E402
+from omnid.experiments.machine import load_average, one_core  # noqa: E402
 from omnid.sim.installation import calibrate_installed  # noqa: E402
 from omnid.sim.laser import LaserProjector  # noqa: E402
 from omnid.sim.render import RenderOptions, render_capture  # noqa: E402
@@ -201,16 +201,10 @@ def main(argv: list[str] | None = None) -> int:
         "--old-root", default=None, help="also time this checkout's best (same captures)"
     )
     args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
-    print(
-        f"python {platform.python_version()}, numpy {np.__version__}, cv2 {cv2.__version__}, "
-        f"one core (cv2 threads {cv2.getNumThreads()}, BLAS threads 1), {platform.machine()}, "
-        f"{os.cpu_count()} CPUs"
-    )
-    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(one_core(cv2))
     for name in LASERS if args.laser == "all" else [args.laser]:
         bench_laser(name, args.repeats, args.old_root)
-    print(f"\nload average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(f"\nload average after: {load_average()}")
     return 0
 
 
