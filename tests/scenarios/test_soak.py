@@ -1,5 +1,5 @@
 """Soak (issue 6): random riding in a cluttered room, the daemon core at its configured rates:
-12 simulated minutes in CI (the pytest option ``--soak-minutes``; the half hour, about a minute
+10 simulated minutes in CI (the pytest option ``--soak-minutes``; the half hour, about a minute
 of wall time: ``python -m pytest tests/scenarios/test_soak.py --soak-minutes 30``).
 
 The rider uses a joystick (the one input that can reverse) and does what a rider does: drives
