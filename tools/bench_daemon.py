@@ -43,18 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-BARE_LOOP = """
-import asyncio, json, sys, time
-async def main(seconds, period):
-    t0, k, late = time.monotonic(), 0, []
-    while time.monotonic() - t0 < seconds:
-        deadline = t0 + k * period
-        await asyncio.sleep(max(0.0, deadline - time.monotonic()))
-        late.append(time.monotonic() - deadline)
-        k += 1
-    return late
-print(json.dumps(asyncio.run(main(float(sys.argv[1]), 0.02))))
-"""
+from omnid.experiments.machine import bare_loop_lateness, start_bare_loop
 
 
 def pct(xs, q) -> float:
@@ -330,9 +319,7 @@ def main() -> None:
                 time.sleep(0.05)
             time.sleep(2.5)  # worker up, first clouds in
             seconds = max(10.0, a.presses * 0.2)
-            bare = subprocess.Popen(
-                [sys.executable, "-c", BARE_LOOP, str(seconds)], stdout=subprocess.PIPE, text=True
-            )
+            bare = start_bare_loop(seconds)
             client = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             client.connect(str(teleop))
             client.settimeout(2.0)
@@ -354,7 +341,7 @@ def main() -> None:
                 client.sendall(b"stop\n")
                 client.recv(64)
             client.close()
-            bare_late = json.loads(bare.communicate(timeout=seconds + 30)[0])
+            bare_late = bare_loop_lateness(bare, seconds)
         finally:
             proc.send_signal(signal.SIGTERM)
             rc = proc.wait(timeout=20)

@@ -50,18 +50,7 @@ from typing import Any
 
 import numpy as np
 
-BARE_LOOP = """
-import asyncio, json, sys, time
-async def main(seconds, period):
-    t0, k, late = time.monotonic(), 0, []
-    while time.monotonic() - t0 < seconds:
-        deadline = t0 + k * period
-        await asyncio.sleep(max(0.0, deadline - time.monotonic()))
-        late.append(time.monotonic() - deadline)
-        k += 1
-    return late
-print(json.dumps(asyncio.run(main(float(sys.argv[1]), 0.02))))
-"""
+from omnid.experiments.machine import bare_loop_lateness, start_bare_loop
 
 
 def pct(xs: Any, q: float) -> float:
@@ -145,11 +134,9 @@ def real(seconds: float) -> None:
         proc = subprocess.Popen([*cmd, "--stats-out", str(stats_path)], stderr=err)
         try:
             time.sleep(4.0)  # worker up, first clouds in
-            bare = subprocess.Popen(
-                [sys.executable, "-c", BARE_LOOP, str(seconds)], stdout=subprocess.PIPE, text=True
-            )
+            bare = start_bare_loop(seconds)
             served0, t0 = server.requests_served, time.monotonic()
-            bare_late = json.loads(bare.communicate(timeout=seconds + 30)[0])
+            bare_late = bare_loop_lateness(bare, seconds)
             served, t1 = server.requests_served - served0, time.monotonic()
         finally:
             proc.send_signal(signal.SIGTERM)

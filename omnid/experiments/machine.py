@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import os
 import platform
+import subprocess
+import sys
 
 
 def one_core(cv2: object) -> str:
@@ -24,3 +27,32 @@ def one_core(cv2: object) -> str:
 def load_average() -> str:
     """The 1, 5 and 15 minute load averages."""
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+_BARE_LOOP = """
+import asyncio, json, sys, time
+async def main(seconds, period):
+    t0, k, late = time.monotonic(), 0, []
+    while time.monotonic() - t0 < seconds:
+        deadline = t0 + k * period
+        await asyncio.sleep(max(0.0, deadline - time.monotonic()))
+        late.append(time.monotonic() - deadline)
+        k += 1
+    return late
+print(json.dumps(asyncio.run(main(float(sys.argv[1]), float(sys.argv[2])))))
+"""
+
+
+def start_bare_loop(seconds: float, period_s: float = 0.02) -> subprocess.Popen[str]:
+    """A reference process: an empty asyncio loop waking every ``period_s`` for ``seconds``,
+    started now, so that a daemon's lateness is compared with this machine's at the same time."""
+    return subprocess.Popen(
+        [sys.executable, "-c", _BARE_LOOP, str(seconds), str(period_s)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+def bare_loop_lateness(proc: subprocess.Popen[str], seconds: float) -> list[float]:
+    """The lateness (s) of each wake-up of a :func:`start_bare_loop` process, when it ends."""
+    return list(json.loads(proc.communicate(timeout=seconds + 30)[0]))
