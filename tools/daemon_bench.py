@@ -46,34 +46,9 @@ def calibrated_floor(directory: Path) -> tuple[Path, Any]:
     """The installer's captures (empty floor, a box, a wall; nominal rig, the simulator's
     physical laser) and ``omnid calibrate`` run on them; returns (calibration, floor capture)."""
     from omnid.core.geometry import StereoRig
-    from omnid.sim.installation import installation_captures, write_installation
+    from omnid.sim.installation import calibrate_installation_cli
 
-    rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    extras = write_installation(rig, directory, seed=3)
-    cap = installation_captures(rig, seed=3)[0]
-    names = ("mask1", "base1", "mask2", "base2")
-    calib = directory / "calib.yaml"
-    args = [a for n in names for a in (f"--{n}", str(directory / f"floor_{n}.png"))]
-    args += [a for e in extras for a in ("--extra", str(e))]
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "omnid.cli",
-            "calibrate",
-            *args,
-            "--floor-depth-mm",
-            str(FLOOR_MM),
-            "--out",
-            str(calib),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    if out.returncode != 0:
-        raise RuntimeError(f"omnid calibrate failed: {out.stderr.strip()}")
-    return calib, cap
+    return calibrate_installation_cli(StereoRig.nominal(floor_depth_mm=FLOOR_MM), directory, seed=3)
 
 
 def _merge(into: dict[str, Any], extra: dict[str, Any]) -> None:

@@ -105,3 +105,33 @@ def write_installation(
     floor, extras = installation_captures(rig, laser, mount, seed, options)
     out = write_capture(floor, directory, "floor_")
     return [write_capture(cap, out / f"extra_{name}") for name, cap in extras.items()]
+
+
+def calibrate_installation_cli(
+    rig: StereoRig, directory: str | Path, seed: int = 0, timeout_s: float = 120.0
+) -> tuple[Path, StereoCapture]:
+    """The installer's procedure end to end: :func:`write_installation` into ``directory``, then
+    the real ``omnid calibrate`` (a child process) on the floor and the extras. Returns
+    (``directory/calib.yaml``, the floor capture); RuntimeError with calibrate's message if it
+    refuses."""
+    import subprocess
+    import sys
+
+    out_dir = Path(directory)
+    extras = write_installation(rig, out_dir, seed=seed)
+    floor = installation_captures(rig, seed=seed)[0]
+    calib = out_dir / "calib.yaml"
+    names = ("mask1", "base1", "mask2", "base2")
+    args = [a for n in names for a in (f"--{n}", str(out_dir / f"floor_{n}.png"))]
+    args += [a for e in extras for a in ("--extra", str(e))]
+    depth = f"{rig.floor_depth_mm:g}"
+    run = subprocess.run(
+        [sys.executable, "-m", "omnid.cli", "calibrate", *args, "--floor-depth-mm", depth,
+         "--out", str(calib)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )  # fmt: skip
+    if run.returncode != 0:
+        raise RuntimeError(f"omnid calibrate failed: {run.stderr.strip()}")
+    return calib, floor

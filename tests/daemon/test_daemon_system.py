@@ -30,7 +30,7 @@ from omnid.core.geometry import StereoRig
 from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
 from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
 from omnid.sim.frame_server import FrameServer
-from omnid.sim.installation import installation_captures, write_installation
+from omnid.sim.installation import calibrate_installation_cli
 
 FLOOR_MM = 1100.0
 NEUTRAL = (1.5, -1.0)  # the rider's head at rest (roll, pitch), deg: calibrated at start
@@ -68,32 +68,8 @@ def hold(gs: Gs311Emulator, angles: tuple[float, float]) -> None:
 def floor_frames(tmp_path_factory) -> tuple[Path, object]:
     """The installer's captures (empty floor, a box, a wall) seen by the nominal rig with the
     simulator's laser, and ``omnid calibrate`` run on them (subprocess)."""
-    d = tmp_path_factory.mktemp("floor")
     rig = StereoRig.nominal(floor_depth_mm=FLOOR_MM)
-    extras = write_installation(rig, d, seed=3)
-    cap = installation_captures(rig, seed=3)[0]
-    names = ("mask1", "base1", "mask2", "base2")
-    calib = d / "calib.yaml"
-    args = [a for n in names for a in (f"--{n}", str(d / f"floor_{n}.png"))]
-    args += [a for e in extras for a in ("--extra", str(e))]
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "omnid.cli",
-            "calibrate",
-            *args,
-            "--floor-depth-mm",
-            str(FLOOR_MM),
-            "--out",
-            str(calib),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert out.returncode == 0, out.stderr
-    return calib, cap
+    return calibrate_installation_cli(rig, tmp_path_factory.mktemp("floor"), seed=3)
 
 
 def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> None:
