@@ -373,23 +373,30 @@ def reverse_unseen(kind: RiderKind, seed: int) -> Trial:
                  hazard=(("box", 0),))  # fmt: skip
 
 
+#: The soak's room (tests/scenarios/test_soak.py): six boxes 300–800 mm tall and a sunken corner.
+ROOM_BOXES = (
+    Box(800.0, 1200.0, 600.0, 1000.0, 400.0),
+    Box(1500.0, 1900.0, -1300.0, -800.0, 600.0),
+    Box(2600.0, 3000.0, 200.0, 700.0, 300.0),
+    Box(3600.0, 4200.0, -600.0, -200.0, 800.0),
+    Box(-600.0, -300.0, 1300.0, 1700.0, 500.0),
+    Box(4800.0, 5200.0, 1000.0, 1500.0, 500.0),
+)
+ROOM_DROP = DropOff(5600.0, 7000.0, -2000.0, -600.0, 170.0)
+
+
 def dense_room() -> tuple[tuple[Box, ...], tuple[DropOff, ...]]:
-    """Clutter: eleven boxes (300–800 mm tall, 40 mm posts among them) and a sunken corner."""
+    """Clutter: the soak's room and five more boxes, three of them 40 mm posts (eleven boxes,
+    300–900 mm tall, and the sunken corner)."""
     boxes = (
-        Box(800.0, 1200.0, 600.0, 1000.0, 400.0),
-        Box(1500.0, 1900.0, -1300.0, -800.0, 600.0),
-        Box(2600.0, 3000.0, 200.0, 700.0, 300.0),
-        Box(3600.0, 4200.0, -600.0, -200.0, 800.0),
-        Box(-600.0, -300.0, 1300.0, 1700.0, 500.0),
-        Box(4800.0, 5200.0, 1000.0, 1500.0, 500.0),
+        *ROOM_BOXES,
         Box(2000.0, 2040.0, 1400.0, 1440.0, 900.0),
         Box(3300.0, 3340.0, 1200.0, 1240.0, 900.0),
         Box(900.0, 1300.0, -1800.0, -1500.0, 450.0),
         Box(5600.0, 6000.0, 300.0, 800.0, 700.0),
         Box(200.0, 240.0, -1100.0, -1060.0, 900.0),
     )
-    drops = (DropOff(5600.0, 7000.0, -2000.0, -600.0, 170.0),)
-    return boxes, drops
+    return boxes, (ROOM_DROP,)
 
 
 def clutter(kind: RiderKind, seed: int, duration_s: float = 600.0) -> Trial:

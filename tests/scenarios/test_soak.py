@@ -47,22 +47,13 @@ from omnid.daemon.safety import Reason
 from omnid.sim.laser import ideal_lattice
 from omnid.sim.rider import random_ride
 from omnid.sim.simulator import SimSettings, Simulator
-from omnid.sim.world import Box, DropOff
+from omnid.sim.suite import ROOM_BOXES, ROOM_DROP
 
 ESCAPE_SPEED_MM_S = 40.0
 
 
 def cluttered_room():
-    boxes = (
-        Box(800.0, 1200.0, 600.0, 1000.0, 400.0),
-        Box(1500.0, 1900.0, -1300.0, -800.0, 600.0),
-        Box(2600.0, 3000.0, 200.0, 700.0, 300.0),
-        Box(3600.0, 4200.0, -600.0, -200.0, 800.0),
-        Box(-600.0, -300.0, 1300.0, 1700.0, 500.0),
-        Box(4800.0, 5200.0, 1000.0, 1500.0, 500.0),
-    )
-    drop = DropOff(5600.0, 7000.0, -2000.0, -600.0, 170.0)  # a sunken area in a corner
-    return room(boxes, (drop,), length_mm=8000.0)
+    return room(ROOM_BOXES, (ROOM_DROP,), length_mm=8000.0)
 
 
 def soak_settings() -> SimSettings:
