@@ -444,8 +444,10 @@ _FIT_ALL_FROM_PX = 1.5
 _CLIPPED_FIT_PX = 8
 #: A neighbour whose light moves a filtered maximum by less than this is left alone, px.
 _COUPLING_PX = 0.01
-#: Fixed-point iterations of the neighbours' pull (:func:`_neighbour_pull`).
-_PULL_ITERATIONS = 4
+#: Fixed-point iterations of the neighbours' pull (:func:`_neighbour_pull`): with 6 the close
+#: dots of a dense laser converge (4 left ~7 % of them to the fit, as accurate on average and
+#: ~1 ms per camera).
+_PULL_ITERATIONS = 6
 #: A pull larger than this (px) is left to the fit.
 _PULL_MAX_PX = 0.75
 #: With more candidates than this, the relative test looks at the square's maximum first.
