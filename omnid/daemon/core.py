@@ -178,6 +178,7 @@ class ControlCore:
         self.stall = StallDetector(config.motion)
         self.bump_direction: tuple[float, float] | None = None  # unit (left, right) of a bump
         self.bump_count = 0
+        self.bump_times: deque[float] = deque(maxlen=64)  # the latest bumps' times, s
         self.map: WorldMap = world_map if world_map is not None else default_map(config)
         self.laser_on = True  # what the perception cycle asks for (off for mask frames)
         self.capturing = False  # True while mask/base frames are being taken
@@ -350,6 +351,7 @@ class ControlCore:
         vl, vr = self.motion.targets_mm_s
         norm = math.hypot(vl, vr)
         self.bump_count += 1
+        self.bump_times.append(now_s)
         wheels = " and ".join(n for n, k in zip(("left", "right"), stalled, strict=True) if k)
         asked = max(self.stall.asked_mm)
         self._log.log(

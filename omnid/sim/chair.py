@@ -225,7 +225,8 @@ class Chair:
     then start at 0). With a ``world``, its boxes block the chair (module docstring):
     ``blocked_by`` holds the
     boxes the last step pressed against, ``bump_log`` every start of a contact as
-    ``(elapsed_s, box indices)``, ``elapsed_s`` the time the chair has been stepped.
+    ``(elapsed_s, box indices)``, ``press_log`` each ended contact as ``(start_s, end_s)``,
+    ``elapsed_s`` the time the chair has been stepped.
     """
 
     def __init__(
@@ -249,6 +250,9 @@ class Chair:
         self.elapsed_s = 0.0
         self.blocked_by: tuple[int, ...] = ()
         self.bump_log: list[tuple[float, tuple[int, ...]]] = []
+        # every contact as (start s, end s): how long the chair pressed against the box, until
+        # a step (duty 0, or away from it) no longer pushed into it
+        self.press_log: list[tuple[float, float]] = []
         s = self.settings
         w = s.footprint_width_mm / 2.0
         self._reach_mm = math.hypot(max(s.footprint_front_mm, s.footprint_rear_mm), w)
@@ -303,7 +307,10 @@ class Chair:
                 s.track_mm,
             )
         if self.world is not None:
+            was_blocked = bool(self.blocked_by)
             self._block(before)
+            if was_blocked and not self.blocked_by:
+                self.press_log.append((self.bump_log[-1][0], self.elapsed_s))
 
     def _block(self, before: tuple[float, float, float, float, float]) -> None:
         """Cut the step just taken short where it pressed the footprint into a box (wheels
