@@ -38,11 +38,8 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   capture shows and the cells under the chair.
 - Drop-offs need evidence (a phantom must not stop the chair): a drop-off dot counts only with
   ``dropoff_min_points`` − 1 others within ``dropoff_cluster_mm`` at a depth within
-  ``dropoff_depth_tolerance_mm`` of its own, and a lowered dot whose ray crossed floor level
-  amid this capture's own floor (floor dots all around the crossing, within
-  ``dropoff_cluster_mm``) is a contradiction, not a drop-off: the floor was seen on every side
-  of where the ray is said to have found none. At a real edge the crossings lie beyond the last
-  floor dots, which are all on the near side. A cell becomes DROPOFF
+  ``dropoff_depth_tolerance_mm`` of its own (a lower floor is flat, phantoms scatter), and a
+  cell becomes DROPOFF
   only when ``dropoff_confirm_captures`` captures in a row say so; before that it is UNKNOWN
   (in doubt: not free, not yet a drop-off). Obstacles likewise (``obstacle_confirm_captures``):
   a phantom of one capture's wrong pairing is doubt, not a wall.
@@ -467,9 +464,11 @@ class FreeSpaceMap:
     ) -> NDArray[np.uint8]:
         """``cls`` with the drop-off dots that are not evidence of a drop-off (module docstring)
         turned into dots of no class: alone (fewer than ``dropoff_min_points`` at one depth
-        nearby), or lowered with a ray that crossed floor level amid this capture's floor dots.
+        nearby). A lowered dot whose ray crossed floor level between this capture's floor dots
+        is not set aside: a trench or a pit narrower than the lattice's reach looks exactly like
+        that in one capture (the rule that did so kept a 150 mm trench FREE until 300 mm before
+        it, docs/benchmarks.md); repetition over captures (``dropoff_confirm_captures``) tells.
         ``sigma_z_mm`` (N,): each dot's depth uncertainty."""
-        st = self.settings
         drop = np.flatnonzero(cls == PointClass.DROPOFF)
         if len(drop) == 0:
             return cls
@@ -478,16 +477,6 @@ class FreeSpaceMap:
         scale = np.maximum(xyz[drop, 2] / floor_depth_mm, 1.0)
         sig = sigma_z_mm[drop]
         ok = self._clustered(xy[drop], depth, scale, sig)
-        low = ok & (xyz[drop, 2] > floor_depth_mm)
-        if np.any(low):
-            k = np.flatnonzero(low)
-            p = xyz[drop[k]]
-            cross = _to_frame(
-                self._pose,
-                rig_to_robot(p * (floor_depth_mm / p[:, 2])[:, None], rig_x_offset_mm),
-            )
-            floor = xy[cls == PointClass.FLOOR]
-            ok[k[_surrounded(cross, floor, st.dropoff_cluster_mm)]] = False
         if not np.all(ok) and np.any(ok):
             keep = np.flatnonzero(ok)
             ok[keep] = self._clustered(xy[drop[keep]], depth[keep], scale[keep], sig[keep])
@@ -1030,25 +1019,6 @@ def _depth_sigma(cov: NDArray[np.float64], n: int) -> NDArray[np.float64]:
         return np.zeros(n)
     var = np.asarray(cov[:, 2, 2], dtype=np.float64)
     return np.sqrt(np.where(np.isfinite(var) & (var > 0), var, 0.0))
-
-
-def _surrounded(
-    pts: NDArray[np.float64], others: NDArray[np.float64], radius_mm: float
-) -> NDArray[np.bool_]:
-    """Which points (M, 2) lie inside the convex hull of the ``others`` (K, 2) within
-    ``radius_mm`` of them: no angular gap of half a turn or more between those neighbours."""
-    out = np.zeros(len(pts), dtype=bool)
-    if len(pts) == 0 or len(others) < 3:
-        return out
-    for i, p in enumerate(pts):
-        d = others - p
-        near = d[np.einsum("ij,ij->i", d, d) <= radius_mm * radius_mm]
-        if len(near) < 3:
-            continue
-        a = np.sort(np.arctan2(near[:, 1], near[:, 0]))
-        gaps = np.diff(np.concatenate([a, a[:1] + 2.0 * math.pi]))
-        out[i] = bool(gaps.max() < math.pi)
-    return out
 
 
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
