@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from omnid.experiments.machine import bare_loop_lateness, start_bare_loop
+from omnid.experiments.machine import REALTIME_PREFIX, bare_loop_lateness, start_bare_loop
 
 
 def pct(xs: Any, q: float) -> float:
@@ -86,7 +86,10 @@ def stream_sim_settings(**changes: Any) -> Any:
 # -- the real process -----------------------------------------------------------------------------
 
 
-def real(seconds: float) -> None:
+def real(seconds: float, fifo: bool = False) -> None:
+    """The real ``omnid run`` on the stream; ``fifo``: started as the unit file starts it
+    (SCHED_FIFO for the control loop, reset on fork for the worker; needs root), with a bare
+    asyncio loop under each policy as the same-run references."""
     from omnid.core.geometry import StereoRig
     from omnid.core.pipeline import perceive
     from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
@@ -122,6 +125,7 @@ def real(seconds: float) -> None:
         img2 = np.rint(m2 + np.float32(lit) * (b2 - m2)).astype(np.uint8)
         return t_s, img1, img2
 
+    prefix = REALTIME_PREFIX if fifo else ()
     # reference: the same perceive call, this process, one core
     ref = []
     for _ in range(30):
@@ -130,13 +134,15 @@ def real(seconds: float) -> None:
         ref.append(time.perf_counter() - w0)
     with FrameServer(frames, provider) as server:
         err = open(tmp / "daemon.log", "w")  # noqa: SIM115
-        cmd = [sys.executable, "-m", "omnid.cli", "run", "--config", str(cfg)]
+        cmd = [*prefix, sys.executable, "-m", "omnid.cli", "run", "--config", str(cfg)]
         proc = subprocess.Popen([*cmd, "--stats-out", str(stats_path)], stderr=err)
         try:
             time.sleep(4.0)  # worker up, first clouds in
             bare = start_bare_loop(seconds)
+            bare_rt = start_bare_loop(seconds, prefix=REALTIME_PREFIX) if fifo else None
             served0, t0 = server.requests_served, time.monotonic()
             bare_late = bare_loop_lateness(bare, seconds)
+            rt_late = bare_loop_lateness(bare_rt, seconds) if bare_rt is not None else None
             served, t1 = server.requests_served - served0, time.monotonic()
         finally:
             proc.send_signal(signal.SIGTERM)
@@ -151,7 +157,8 @@ def real(seconds: float) -> None:
     fps = served / (t1 - t0)
     print(f"machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; daemon exit {rc}; "
           f"log {tmp / 'daemon.log'}")  # fmt: skip
-    print(f"omnid run, perception.capture: stream, {seconds:g} s measured:")
+    policy = "SCHED_FIFO 20, reset on fork (the unit file's)" if fifo else "SCHED_OTHER"
+    print(f"omnid run ({policy}), perception.capture: stream, {seconds:g} s measured:")
     print(
         f"  clouds/s {clouds_s:.1f} against {fps:.1f} frames/s served (same run): "
         f"{clouds_s / fps:.2f} of the frame rate (goal ≥ 0.5); {st['perception_cycles']} clouds, "
@@ -170,6 +177,12 @@ def real(seconds: float) -> None:
         f"  control loop at 50 Hz: lateness p50 {pct(late, 50):.2f} ms  p99 {pct(late, 99):.2f} ms "
         f"(goal ≤ 2 ms); bare asyncio process, same time: p50 {pct(bare_late, 50):.2f} ms  p99 "
         f"{pct(bare_late, 99):.2f} ms"
+        + (
+            ""
+            if rt_late is None
+            else f"; bare asyncio process under SCHED_FIFO: p50 {pct(rt_late, 50):.2f} ms  p99 "
+            f"{pct(rt_late, 99):.2f} ms"
+        )
     )
 
 
@@ -374,12 +387,17 @@ def main() -> None:
     ap.add_argument("--hazard", action="store_true")
     ap.add_argument("--all", action="store_true")
     ap.add_argument("--seconds", type=float, default=20.0, help="--real: measured span")
+    ap.add_argument(
+        "--fifo",
+        action="store_true",
+        help="--real: start the daemon as systemd/omnid.service does (SCHED_FIFO; needs root)",
+    )
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--quality-seconds", type=float, default=8.0)
     ap.add_argument("--trials", type=int, default=8)
     a = ap.parse_args()
     if a.real or a.all:
-        real(a.seconds)
+        real(a.seconds, a.fifo)
     if a.quality or a.all:
         quality(a.seeds, a.quality_seconds)
     if a.hazard or a.all:

@@ -727,8 +727,11 @@ def _max_weight_packing(
 _SMALL = 10
 
 
-def _solve_milp(nodes: NDArray[np.int64], w: NDArray[np.float64]) -> tuple[NDArray[np.intp], bool]:
-    """Maximum-weight packing as a 0/1 integer program: max Σ w·x, each node in ≤ 1 chosen."""
+def _solve_milp(
+    nodes: NDArray[np.int64], w: NDArray[np.float64], time_limit_s: float = 1.0
+) -> tuple[NDArray[np.intp], bool]:
+    """Maximum-weight packing as a 0/1 integer program: max Σ w·x, each node in ≤ 1 chosen;
+    not exact (False) when the solver ran out of ``time_limit_s`` (wall time)."""
     from scipy.optimize import Bounds, LinearConstraint, milp
     from scipy.sparse import csr_array
 
@@ -743,7 +746,7 @@ def _solve_milp(nodes: NDArray[np.int64], w: NDArray[np.float64]) -> tuple[NDArr
         constraints=LinearConstraint(A, -np.inf, 1.0),
         integrality=np.ones(t),
         bounds=Bounds(0.0, 1.0),
-        options={"time_limit": 1.0},
+        options={"time_limit": time_limit_s},
     )
     if res.x is None:  # no solution in time: the greedy packing
         return _greedy(nodes, w), False

@@ -39,7 +39,8 @@ Tasks:
   failing loop is restarted), STATUS= once per ``service.status_period_s``.
 - camera health: a frame pair the perception loop waits for longer than
   ``perception.camera_silence_s``, or a camera error, clears ``core.camera_ok`` (speed capped at
-  ``safety.camera_lost_speed_mm_s`` from the next cycle) until a pair arrives.
+  ``safety.camera_lost_speed_mm_s``) until a pair arrives; a timer runs a control cycle the
+  moment the silence passes the threshold (the cap need not wait for the next 20 ms grid).
 - ``--inject-faults`` (``tools/fault_figures.py`` only): SIGUSR1 kills the control loop's task,
   SIGUSR2 raises in one cycle, SIGRTMIN blocks the event loop for ``OMNID_INJECT_STALL_S``
   (2.2 s).
@@ -228,6 +229,7 @@ class Daemon:
         self._injected: str | None = None  # a fault to inject at the next cycle
         self._camera_wait_s: float | None = None  # since when a frame pair is awaited
         self._camera_failed = False
+        self._camera_timer: asyncio.TimerHandle | None = None  # fires at the silence limit
         self._joystick_live = False
 
     @property
@@ -580,6 +582,22 @@ class Daemon:
                     await t
             self.stats.masks_taken = cycle.masks_taken
 
+    def _arm_camera_timer(self) -> None:
+        """Run a control cycle as soon as the awaited pair is ``camera_silence_s`` late: the
+        speed cap reaches the wire then, not up to a control period later."""
+        if self._camera_timer is not None:
+            self._camera_timer.cancel()
+        waited_since = self._camera_wait_s
+
+        def silent() -> None:
+            self._camera_timer = None
+            if self._camera_wait_s == waited_since and self.core.camera_ok:
+                self._kick()
+
+        self._camera_timer = asyncio.get_running_loop().call_later(
+            self.config.perception.camera_silence_s + 0.001, silent
+        )
+
     async def _frame_reader(self, cycle: CaptureCycle) -> None:
         """Read frame pairs while the cycle wants them (flushing the queue first where it
         asks); a camera that raises is closed and opened again (after 0.05 … 1 s)."""
@@ -599,6 +617,7 @@ class Daemon:
                 try:
                     if self._camera_wait_s is None:
                         self._camera_wait_s = time.monotonic()  # camera health: awaited since
+                        self._arm_camera_timer()
                     if self._camera_reset and camera is not None:
                         await camera.close()
                         camera = None

@@ -43,14 +43,24 @@ print(json.dumps(asyncio.run(main(float(sys.argv[1]), float(sys.argv[2])))))
 """
 
 
-def start_bare_loop(seconds: float, period_s: float = 0.02) -> subprocess.Popen[str]:
+def start_bare_loop(
+    seconds: float, period_s: float = 0.02, prefix: tuple[str, ...] = ()
+) -> subprocess.Popen[str]:
     """A reference process: an empty asyncio loop waking every ``period_s`` for ``seconds``,
-    started now, so that a daemon's lateness is compared with this machine's at the same time."""
+    started now, so that a daemon's lateness is compared with this machine's at the same time.
+    ``prefix``: a command to start it through (``REALTIME_PREFIX``: the daemon's scheduling)."""
     return subprocess.Popen(
-        [sys.executable, "-c", _BARE_LOOP, str(seconds), str(period_s)],
+        [*prefix, sys.executable, "-c", _BARE_LOOP, str(seconds), str(period_s)],
         stdout=subprocess.PIPE,
         text=True,
     )
+
+
+# How systemd/omnid.service starts the daemon (CPUSchedulingPolicy=fifo, CPUSchedulingPriority=
+# 20, CPUSchedulingResetOnFork=yes), for a benchmark run by root: real-time FIFO for the control
+# loop's thread, while the perception worker and every other thread or child it starts run at
+# the normal policy (reset on fork)
+REALTIME_PREFIX = ("chrt", "--fifo", "--reset-on-fork", "20")
 
 
 def bare_loop_lateness(proc: subprocess.Popen[str], seconds: float) -> list[float]:

@@ -20,6 +20,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -242,7 +243,11 @@ def test_daemon_streams_clouds_at_the_frame_rate(tmp_path: Path, floor_frames) -
     frames = str(tmp_path / "frames.sock")
     planes = [a.astype(np.float32) for a in (cap.mask1, cap.base1, cap.mask2, cap.base2)]
 
+    gone = threading.Event()  # set: the frame server answers nothing (the cameras are lost)
+
     def provider(t_s: float):
+        while gone.is_set():
+            time.sleep(0.005)
         lit = np.float32(lit_share(cu.laser_switches, t_s - 0.003, t_s + 0.003, cu.laser_on))
         m1, b1, m2, b2 = planes
         return (
@@ -271,10 +276,15 @@ def test_daemon_streams_clouds_at_the_frame_rate(tmp_path: Path, floor_frames) -
         )  # fmt: skip
         try:
             time.sleep(7.0)
+            served = server.requests_served
+            gone.set()  # the cameras go quiet for 0.6 s, then deliver again
+            time.sleep(0.6)
+            gone.clear()
+            time.sleep(1.0)
         finally:
+            gone.clear()
             proc.send_signal(signal.SIGTERM)
             assert proc.wait(timeout=30) == 0
-        served = server.requests_served
     gs.close()
     cu.close()
     st = json.loads(stats.read_text())
@@ -287,3 +297,7 @@ def test_daemon_streams_clouds_at_the_frame_rate(tmp_path: Path, floor_frames) -
     assert st["perception_errors"] <= 0.35 * st["masks_taken"]
     late = np.asarray(st["lateness_s"])
     assert len(late) > 200 and np.percentile(late, 50) < 0.005
+    # the silence is noticed (speed capped) and its end too, each said once
+    log_text = (tmp_path / "stderr.log").read_text()
+    assert log_text.count("cameras deliver nothing") == 1, log_text
+    assert log_text.count("cameras deliver again") == 1, log_text

@@ -123,12 +123,14 @@ def test_supervised_loop_zero_on_exception_stall_and_death(tmp_path: Path) -> No
 
         # the unit falls silent: the link declares it unhealthy and sends zero at once
         t2 = time.monotonic()
-        unhealthy = err_path.read_text().count("link unhealthy")
         emu.stall()
         assert wait_for(lambda: (spy.first_zero_after(t2) or 1e9) - t2 < 1.0, 2.0)
-        # the silence has been seen as a fault (on a loaded machine a zero frame can come
-        # first for another reason, and a stall ended before the link noticed is no fault)
-        assert wait_for(lambda: err_path.read_text().count("link unhealthy") > unhealthy, 3.0)
+        # silent long enough to be a fault (2 missed 10 ms replies) however loaded the machine:
+        # a stall ended before the link noticed is no fault. Not told by counting "link
+        # unhealthy" lines: that warning is rate-limited (one per 5 s), and on a loaded machine a
+        # false alarm just before hides this one's line
+        time.sleep(0.5)
+        assert "link unhealthy" in err_path.read_text()
         emu.recover()
         time.sleep(0.5)
         assert not turning(emu)  # a fault: the held key restarts nothing
@@ -138,8 +140,9 @@ def test_supervised_loop_zero_on_exception_stall_and_death(tmp_path: Path) -> No
         assert wait_for(lambda: turning(emu), 5.0)
 
         # the whole event loop stalls: the first frame after it is zero
+        trips = emu.watchdog_trips  # the silent unit above may have tripped it already
         proc.send_signal(signal.SIGRTMIN)
-        assert wait_for(lambda: emu.watchdog_trips >= 1, 5.0)
+        assert wait_for(lambda: emu.watchdog_trips > trips, 5.0)
         assert wait_for(lambda: emu.commands_received > 0 and not _in_gap(spy), 5.0)
         gaps = _gaps(spy, STALL_S / 2)
         assert gaps, "no stall seen on the wire"

@@ -61,6 +61,16 @@ def test_limits_are_set_and_consistent():
     assert "setpriority" in " ".join(directives("SystemCallFilter"))
 
 
+def test_only_the_control_loop_runs_real_time():
+    """FIFO for the process systemd starts (the event loop's thread), reset on fork so that the
+    perception worker and the threads it starts compute at the normal policy, and no way for the
+    process to raise itself further."""
+    assert directives("CPUSchedulingPolicy") == ["fifo"]
+    assert 1 <= int(directives("CPUSchedulingPriority")[0]) <= 49  # below the kernel's threads
+    assert directives("CPUSchedulingResetOnFork") == ["yes"]
+    assert directives("RestrictRealtime") == ["yes"]
+
+
 @needs_analyze
 def test_the_syscalls_the_daemon_makes_are_allowed():
     allowed = allowed_syscalls()
