@@ -11,7 +11,9 @@ Each rig is calibrated as an installer would: the empty floor plus ``extras`` ca
 wall standing ahead, drawn at random) — or the floor alone (``floor_only``). Then each scene class
 is drawn at random per seed and perceived with the pipeline, and scored against the ray-cast truth:
 
-    recall       dots seen by both cameras whose pair was reported right / those dots
+    recall       dots seen by both cameras whose pair was reported right / those dots (dots
+                 closer than :data:`MERGED_PX` in both images — a doubled beam — are one
+                 dot: right if a point pairs any of them)
     obstacle, dropoff   the same over obstacle / drop-off dots only
     wrong        reported points from wrong pairs / reported points
     err X/Y/Z    mean |error| per axis over the range ‖xyz‖ of the right pairs, %
