@@ -45,7 +45,7 @@ or the margin be reached. A move whose first contact is a drop-off is never an e
 (``dropoff_stop`` stays a refusal). Reason ``escape_creep``.
 
 The most restrictive limit wins; the rider's v and ω are scaled by one factor, so the chair keeps
-the path the rider asked for — except that, with ``soften`` on, a limited turn is softened: a small set
+the path the rider asked for — except that, with ``soften`` on (the default), a limited turn is softened: a small set
 of nearby twists (:meth:`SafetyLayer.soften_candidates`: gentler turns, less or no travel, a turn
 in place with a forward component) is checked by all the same rules, and the allowed twist with
 the most progress along the asked one, less its deviation from it, runs instead (reason
@@ -155,8 +155,9 @@ class SafetySettings(Settings):
     # softening (module docstring): a limited turn may become the nearest allowed twist of a
     # small candidate set (gentler turns, turns with less or no travel, a turn in place with a
     # forward component of at most this, fastest point); off: the request is only scaled.
-    # Off by default: it wedges the CI soak's random rider (docs/benchmarks.md)
-    soften: bool = False
+    # On by default: a joystick rider's small corrections in a door frame are refused as arcs
+    # (the tail swings to a jamb) while the straight line is clear (docs/benchmarks.md)
+    soften: bool = True
     soften_forward_mm_s: float = setting(100.0, 0.0, 300.0)
 
     def __post_init__(self) -> None:

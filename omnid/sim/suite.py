@@ -18,8 +18,9 @@ world's truth, never from what the daemon believed:
   and the hazard's response time — from the moment the hazard both has a laser dot on it
   (truth) and lies within the distance at which the daemon's rules limit the chair at its
   current speed (the slow zone, or the stop line plus the approach and braking distance, plus
-  the margin; measured to the true footprint) to the first command the safety layer limited
-  (0 when the chair was already limited then);
+  the margin; measured on truth as the rules measure it, along the chair's current motion:
+  how far the true footprint can travel before it touches the hazard) to the first command the
+  safety layer limited (0 when the chair was already limited then);
 - for a doorway or corridor: whether the whole chair got through, the slowest it went while
   any part of it was in the opening, and whether it stood still there.
 
@@ -553,6 +554,31 @@ def footprint_clearance_mm(pose: Any, rects: NDArray[np.float64]) -> float:
     return 0.0 if inside else min(d1, d2)
 
 
+def path_clearance_mm(
+    pose: Any,
+    v_mm_s: float,
+    omega_rad_s: float,
+    outline: NDArray[np.float64],
+    horizon_mm: float = 5000.0,
+) -> float:
+    """How far (mm, travel of the footprint's fastest point) the true footprint at ``pose`` can
+    move on its current twist before it touches ``outline`` (points, world frame): the distance
+    the safety layer's rules are written in (:func:`omnid.daemon.safety.contact_path_s`),
+    measured on truth. ``inf`` at rest or when nothing lies on the way within ``horizon_mm``."""
+    from omnid.daemon.safety import contact_path_s
+
+    front, rear, width = FOOTPRINT
+    u = abs(v_mm_s) + abs(omega_rad_s) * math.hypot(rear, width / 2)
+    if u < 1.0 or len(outline) == 0:
+        return math.inf
+    x, y, th = pose
+    c, s = math.cos(th), math.sin(th)
+    dx, dy = outline[:, 0] - x, outline[:, 1] - y
+    px, py = c * dx + s * dy, -s * dx + c * dy
+    rect = (-rear, front, -width / 2, width / 2)
+    return float(np.min(contact_path_s(px, py, v_mm_s, omega_rad_s, rect, u, horizon_mm)))
+
+
 def way_clear(
     pose: Any, forward: float, turn: float, outline: NDArray[np.float64], core: Any
 ) -> bool:
@@ -634,7 +660,14 @@ def run_trial(
         stop_clear = footprint_clearance_mm(poses[-1], hz)
         min_clear = min(footprint_clearance_mm(p, hz) for p in poses[:: max(1, n // 400)])
         seen_s = _dot_times(sim, trial, result) if trial.response else np.zeros(0)
-        clear = np.array([footprint_clearance_mm(p, hz) for p in poses])
+        # how far the chair can go on its current motion before it touches the hazard: an
+        # oblique wall 300 mm from the footprint is 520 mm away along a 35° approach, and the
+        # rules limit on the latter (the nearest distance would start the clock ~0.5 s early)
+        dt = np.gradient(st[:, 0]) if n > 1 else np.ones(n)
+        omega = np.gradient(np.unwrap(poses[:, 2])) / np.maximum(dt, 1e-6) if n > 1 else dt * 0
+        hz_outline = _outline(hz)
+        clear = np.array([path_clearance_mm(p, float(v), float(w), hz_outline)
+                          for p, v, w in zip(poses, st[:, 5], omega, strict=True)])  # fmt: skip
         sf = core.config.safety
         u = speed + 1e-9
         reach = np.where(u > sf.slow_speed_mm_s, sf.slow_distance_mm, 0.0)

@@ -77,3 +77,32 @@ def test_false_stop_truth_check_sees_a_box_in_the_way_and_not_one_beside_it():
     # box 1 is at x 800..1200, y 600..1000: straight ahead of a chair at (0, 800) facing +x
     assert not way_clear((0.0, 800.0, 0.0), 0.6, 0.0, outline, core)
     assert way_clear((0.0, -200.0, 0.0), 0.6, 0.0, outline, core)
+
+
+def test_path_clearance_is_the_travel_to_contact_along_the_motion_not_the_nearest_gap():
+    """The hazard response's clock starts on how far the true footprint can travel before it
+    touches the hazard (the rules' distance), not on the nearest gap: a wall at 35° across the
+    path is farther along the path than across; a wall beside the path is never reached."""
+    import math
+
+    import numpy as np
+
+    from omnid.sim.suite import FOOTPRINT, _outline, footprint_clearance_mm, path_clearance_mm
+
+    front = FOOTPRINT[0]
+    ahead = np.array([[1000.0 + front, 1100.0 + front, -2000.0, 2000.0]])  # 1000 mm ahead
+    assert path_clearance_mm((0.0, 0.0, 0.0), 200.0, 0.0, _outline(ahead, 5.0)) == (
+        pytest.approx(1000.0, abs=6.0)
+    )
+    assert math.isinf(path_clearance_mm((0.0, 0.0, 0.0), 0.0, 0.0, _outline(ahead)))  # at rest
+    assert math.isinf(path_clearance_mm((0.0, 0.0, 0.0), -80.0, 0.0, _outline(ahead)))  # backing
+    beside = np.array([[-3000.0, 3000.0, 400.0, 500.0]])  # 50 mm beside the 700 mm chair
+    assert footprint_clearance_mm((0.0, 0.0, 0.0), beside) == pytest.approx(50.0, abs=1.0)
+    assert math.isinf(path_clearance_mm((0.0, 0.0, 0.0), 200.0, 0.0, _outline(beside)))
+    # the same wall turned 35° to the heading: the nearest gap is smaller than the travel
+    th = math.radians(35.0)
+    pose = (0.0, 0.0, th)  # heading 35° toward a wall along x at y = 900
+    wall = np.array([[-5000.0, 5000.0, 900.0, 1000.0]])
+    near = footprint_clearance_mm(pose, wall)
+    travel = path_clearance_mm(pose, 200.0, 0.0, _outline(wall, 5.0))
+    assert travel > 1.5 * near

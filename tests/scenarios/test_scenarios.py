@@ -122,9 +122,9 @@ def test_turn_toward_a_remembered_obstacle_outside_the_laser_field_is_refused():
     # refuses the turn from memory (obstacle_stop) once the front-left corner reaches the stop
     # line before it (the map holds the box's seen points exactly: the turn gets that far).
     cfg = core.config  # type: ignore[attr-defined]
-    creep = ControlCore(
-        dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, unknown_policy="creep"))
-    )
+    # (softening off: it would run the turn with a forward component instead, clear of the box)
+    plain = dataclasses.replace(cfg.safety, unknown_policy="creep", soften=False)
+    creep = ControlCore(dataclasses.replace(cfg, safety=plain))
     slow = head_script([("neutral", 0.5), ("forward", 9.0), ("neutral", 1.0), ("left", 16.0)])
     result = Simulator(course, creep, TRUTH, rider=slow).run(27.5)
     assert result.contacts == [] and result.min_clearance_mm > 25.0  # the side margin
