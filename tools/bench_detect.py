@@ -18,7 +18,7 @@ printed (the machine may be shared: prefer the mins and the same-run ratios).
 
 Run from the repository root (``pip install -e '.[test,bench]'``):
     python tools/bench_detect.py [--draws 10] [--repeats 30] [--before REV] [--no-oracle]
-                                 [--learned-shape]
+                                 [--learned-shape] [--split-blends]
 """
 
 from __future__ import annotations
@@ -352,6 +352,11 @@ def main() -> int:
         action="store_true",
         help="also score best with the experimental learned-shape joint fit (omnid.core.spotshape)",
     )
+    ap.add_argument(
+        "--split-blends",
+        action="store_true",
+        help="also score best with the experimental two-spot split of blends (detect._split_blends)",
+    )
     args = ap.parse_args()
     print(one_core(cv2))
     detectors: dict[str, Detector] = {"best": lambda m, b: detect_dots(m, b, "best")}
@@ -373,6 +378,11 @@ def main() -> int:
         spot_detectors["learned shape"] = lambda m, b: _detect_best(
             m, b, DetectionParams(), learned_shape=True
         )
+    if args.split_blends:
+        detectors["split blends"] = lambda m, b: _detect_best(
+            m, b, DetectionParams(), split_blends=True
+        )
+        spot_detectors["split blends"] = detectors["split blends"]
     spot_models(args.draws, spot_detectors, args.trackpy_draws, trackpy, args.bound_dots)
     standard_scene(args.repeats, detectors, trackpy)
     if not args.no_oracle:

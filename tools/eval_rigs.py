@@ -10,6 +10,7 @@ the median and the worst decile over rigs, the pooled rates, and how calibration
                                                # (same draws; it calibrates on the floor only)
     python tools/eval_rigs.py --approach       # phantoms driving up to a passage and a wall:
                                                # 30 rigs x 2 scenes x 65 poses (25 mm apart)
+    python tools/eval_rigs.py --misses         # what the empty floor's misses are (30 rigs x 2)
 """
 
 from __future__ import annotations
@@ -53,6 +54,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="closed-loop-like sweep: phantom points per 1000 clouds approaching a passage/wall",
     )
+    ap.add_argument(
+        "--misses",
+        action="store_true",
+        help="the empty floor's misses: separation, doubled twin, the blob's point",
+    )
     ap.add_argument("--step-mm", type=float, default=25.0, help="--approach: pose step (25 mm)")
     args = ap.parse_args(argv)
     import cv2
@@ -66,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     scenes = args.scenes.split(",") if args.scenes else list(ex.SCENE_CLASSES)
     if args.approach:
         return _approach(ex, n_rigs, args)
+    if args.misses:
+        return _misses(ex, n_rigs, seeds, args)
     scores = []
     refused: list[str] = []
     src_err = []
@@ -120,6 +128,24 @@ def main(argv: list[str] | None = None) -> int:
         print("refused:", line)
     if args.json:
         print(json.dumps([{**vars(s), "err_sum": list(s.err_sum)} for s in scores]))
+    return 0
+
+
+def _misses(ex, n_rigs: int, seeds: list[int], args: argparse.Namespace) -> int:
+    """The empty floor's misses (``omnid.experiments.rigs.floor_misses``), binned."""
+    import omnid
+
+    t_all = time.perf_counter()
+    seen, misses = 0, []
+    for r in range(n_rigs):
+        case = ex.rig_case(r, args.seed)
+        calib = ex.calibrate_case(case, args.seed, args.floor_only)
+        n, m = ex.floor_misses(case, calib, seeds)
+        seen += n
+        misses.extend(m)
+    print(f"omnid from {Path(omnid.__file__).resolve().parent.parent}")
+    print(f"{n_rigs} rigs x {len(seeds)} seeds, {time.perf_counter() - t_all:.0f} s")
+    print(ex.format_misses(seen, misses))
     return 0
 
 

@@ -469,6 +469,14 @@ _FAR_CONTRAST = 0.9
 #: Outside the mirror's disk the camera sees its dark housing (SPEC §6): a mask-frame pixel
 #: darker than this (gray) is not the scene.
 _HOUSING_GRAY = 12.0
+#: A blend is split when two spots beat one by this much (twice the log-likelihood ratio,
+#: :func:`~omnid.core.spotfit.two_spot_test`): on the random rigs' floors 13 of 16 blends of
+#: beams ≥ 1.8 σ apart score 47–660, lone dots above 25 in 0.1 % (0.4 % of rim-stretched).
+_SPLIT_EVIDENCE = 25.0
+#: ... and its two spots lie this many image spot sigmas apart (closer: one observation, no
+#: fit tells them apart at the sensor's noise; farther: the smoothing shows two maxima).
+_SPLIT_MIN_SIGMAS = 2.0
+_SPLIT_MAX_SIGMAS = 3.5
 #: Spots larger than this (sigma, px) get their own matched filter for the centres.
 _MATCHED_FROM_PX = 1.5
 #: The 3x3 neighbourhood of a peak and the least-squares solve of a quadratic through it:
@@ -563,7 +571,11 @@ def _clipped_sigma(
 
 
 def _detect_best(
-    mask: NDArray, base: NDArray, p: DetectionParams, learned_shape: bool = False
+    mask: NDArray,
+    base: NDArray,
+    p: DetectionParams,
+    learned_shape: bool = False,
+    split_blends: bool = False,
 ) -> NDArray[np.float64]:
     """Sub-pixel dot centres.
 
@@ -713,6 +725,15 @@ def _detect_best(
         rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
     if len(rows) == 0:
         return _empty()
+    # Experimental (not the default; docs/benchmarks/rigs.md): two beams closer than the
+    # smoothing resolves (a doubled beam) are one maximum — split where two spots explain the
+    # light better than any one spot (:func:`_split_blends`).
+    split = np.zeros(len(rows), dtype=bool)
+    if split_blends:
+        rows, cols, centre, r, c, clipped, split = _split_blends(
+            d, saturated, sm, rows, cols, centre, r, c, clipped, sigma, p.best_relative_peak
+        )
+    split_r, split_c = r[split], c[split]
     # Dots the mirror's rim cuts (the housing outside the mirror is dark in the mask frame) are
     # centred on the pixels that see them.
     cut = _cut_by_rim(_laser_gray(mask, p.bgr_weights), rows + r0, cols + c0)
@@ -778,10 +799,89 @@ def _detect_best(
             noise,
             spotfit.window_half_px(sigma),
         )
+    # (a split blend's centres are the two-spot fit's: the one-spot refinements above do not
+    # apply to it)
+    r[split], c[split] = split_r, split_c
     if cut.any():
-        k = np.flatnonzero(cut)
+        k = np.flatnonzero(cut & ~split)
         r[k], c[k] = _refine(d, top_rows[k], top_cols[k])
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
+
+
+def _split_blends(
+    d: NDArray[np.float32],
+    saturated: NDArray[np.bool_] | None,
+    sm: NDArray,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    centre: NDArray,
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    clipped: NDArray[np.bool_],
+    sigma: float,
+    relative_peak: float,
+) -> tuple[
+    NDArray[np.intp],
+    NDArray[np.intp],
+    NDArray,
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.bool_],
+    NDArray[np.bool_],
+]:
+    """The candidates with every blend of two spots split in two, and which dots came from a
+    split (their centres are the two-spot fit's).
+
+    A candidate is tested (:func:`~omnid.core.spotfit.two_spot_test`) when its light is
+    elongated enough to hold two spots of the image's σ at least :data:`_SPLIT_MIN_SIGMAS`
+    apart, the dimmer at least ``relative_peak`` of the brighter (long-axis variance excess
+    ≥ w(1 − w)·d² of those; clipped pixels are lower bounds in the fits). It is split when two round spots
+    beat one spot of any elongation and flatness by :data:`_SPLIT_EVIDENCE` (twice the
+    log-likelihood ratio at the window's noise level) and the fit is a blend: the two
+    :data:`_SPLIT_MIN_SIGMAS`–:data:`_SPLIT_MAX_SIGMAS` σ apart around the maximum, the
+    dimmer at least ``relative_peak`` of the brighter."""
+    n = len(rows)
+    none = np.zeros(n, dtype=bool)
+    if n == 0:
+        return rows, cols, centre, r, c, clipped, none
+    h, w = sm.shape
+    share = relative_peak / (1.0 + relative_peak)
+    d_min = _SPLIT_MIN_SIGMAS * sigma
+    excess = spotfit.light_excess_px2(d, r, c, sigma)
+    ask = np.flatnonzero(excess >= share * (1.0 - share) * d_min * d_min)
+    if len(ask) == 0:
+        return rows, cols, centre, r, c, clipped, none
+    evidence, cen, peaks = spotfit.two_spot_test(d, r[ask], c[ask], sigma, saturated)
+    sep = np.hypot(cen[:, 0] - cen[:, 2], cen[:, 1] - cen[:, 3])
+    dim, bright = peaks.min(axis=1), peaks.max(axis=1)
+    mid_r, mid_c = 0.5 * (cen[:, 0] + cen[:, 2]), 0.5 * (cen[:, 1] + cen[:, 3])
+    ir = np.rint(cen[:, [0, 2]]).astype(np.intp)
+    ic = np.rint(cen[:, [1, 3]]).astype(np.intp)
+    ok = (evidence >= _SPLIT_EVIDENCE) & (sep >= d_min) & (sep <= _SPLIT_MAX_SIGMAS * sigma)
+    ok &= (dim > 0) & (dim >= relative_peak * bright)
+    ok &= np.hypot(mid_r - r[ask], mid_c - c[ask]) <= sigma
+    ok &= np.all((ir >= 3) & (ir < h - 3) & (ic >= 3) & (ic < w - 3), axis=1)
+    k = ask[ok]
+    if len(k) == 0:
+        return rows, cols, centre, r, c, clipped, none
+    cen, ir, ic = cen[ok], ir[ok], ic[ok]
+    rows, cols = rows.copy(), cols.copy()
+    r, c, centre = r.copy(), c.copy(), centre.copy()
+    rows[k], cols[k] = ir[:, 0], ic[:, 0]
+    r[k], c[k] = cen[:, 0], cen[:, 1]
+    centre[k] = sm[ir[:, 0], ic[:, 0]]
+    split = np.zeros(n + len(k), dtype=bool)
+    split[k] = True
+    split[n:] = True
+    return (
+        np.concatenate([rows, ir[:, 1]]),
+        np.concatenate([cols, ic[:, 1]]),
+        np.concatenate([centre, sm[ir[:, 1], ic[:, 1]]]),
+        np.concatenate([r, cen[:, 2]]),
+        np.concatenate([c, cen[:, 3]]),
+        np.concatenate([clipped, clipped[k]]),
+        split,
+    )
 
 
 def _ring_contrast(

@@ -11,7 +11,9 @@ Each rig is calibrated as an installer would: the empty floor plus ``extras`` ca
 wall standing ahead, drawn at random) — or the floor alone (``floor_only``). Then each scene class
 is drawn at random per seed and perceived with the pipeline, and scored against the ray-cast truth:
 
-    recall       dots seen by both cameras whose pair was reported right / those dots
+    recall       dots seen by both cameras whose pair was reported right / those dots (dots
+                 closer than :data:`MERGED_PX` in both images — a doubled beam — are one
+                 dot: right if a point pairs any of them)
     obstacle, dropoff   the same over obstacle / drop-off dots only
     wrong        reported points from wrong pairs / reported points
     err X/Y/Z    mean |error| per axis over the range ‖xyz‖ of the right pairs, %
@@ -26,6 +28,7 @@ is drawn at random per seed and perceived with the pipeline, and scored against 
 from __future__ import annotations
 
 import inspect
+import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -290,6 +293,111 @@ def score_cloud(case: RigCase, scene: str, hits: LaserHits, cloud: Any, ms: floa
     sc.clouds = 1
     sc.ms.append(ms)
     return sc
+
+
+@dataclass(frozen=True)
+class Miss:
+    """A dot seen by both cameras whose pair was not reported right (:func:`floor_misses`).
+
+    sep_px       image separation from the nearest other visible dot, (camera 1, camera 2), px
+    sep_sigma    the smaller of the two over the render's spot sigma
+    twin         that neighbour is the dot's doubled-beam twin (or the dot is its twin)
+    found_px     distance of each camera's nearest detected dot, (camera 1, camera 2), px
+    blob         a reported point claims the neighbour (the blob was paired as the neighbour)
+    blob_err     that point's largest per-axis error from this dot's true position, % of range
+                 (NaN when no point claims the neighbour)
+    """
+
+    rig: int
+    kind: str
+    seed: int
+    sep_px: tuple[float, float]
+    sep_sigma: float
+    twin: bool
+    found_px: tuple[float, float]
+    blob: bool
+    blob_err: float
+
+
+def floor_misses(case: RigCase, calib: Any, seeds: Sequence[int]) -> tuple[int, list[Miss]]:
+    """(dots seen by both cameras, the misses) of the empty floor at each seed — the same
+    captures :func:`evaluate_case` scores — with what lies next to each miss (:class:`Miss`)."""
+    from omnid.core.pipeline import perceive_detailed
+
+    twin_of = case.laser.rays().twin
+    sigma = case.render.spots.sigma_px
+    seen = 0
+    out: list[Miss] = []
+    for seed in seeds:
+        rng = np.random.default_rng([seed, case.index, SCENE_CLASSES.index("floor")])
+        hits, cap = capture(case, draw_scene("floor", case.mount, rng), seed * 1000 + case.index)
+        per = perceive_detailed(cap, calib, "best")
+        cloud = per.cloud
+        idx = np.flatnonzero(hits.visible)
+        px = case.rig.project(hits.xyz[idx])
+        t = _truth_index(cloud.pixels, px)
+        blob = _blobs(px)
+        claimed = np.full(len(px), -1, dtype=np.intp)  # the reported point claiming each dot
+        claimed[t[t >= 0]] = np.flatnonzero(t >= 0)
+        got = set(blob[t[t >= 0]].tolist())
+        d1 = np.hypot(px[:, None, 0] - px[None, :, 0], px[:, None, 1] - px[None, :, 1])
+        d2 = np.hypot(px[:, None, 2] - px[None, :, 2], px[:, None, 3] - px[None, :, 3])
+        np.fill_diagonal(d1, np.inf)
+        np.fill_diagonal(d2, np.inf)
+        first = np.unique(blob, return_index=True)[1]
+        seen += len(first)
+        for b, k in enumerate(first):
+            if b in got:
+                continue
+            j = int(np.argmin(np.maximum(d1[k], d2[k])))
+            q = claimed[j]
+            err = math.nan
+            if q >= 0:
+                e = np.abs(cloud.xyz[q] - hits.xyz[idx[k]]) / np.linalg.norm(hits.xyz[idx[k]])
+                err = 100.0 * float(np.max(e))
+            found = tuple(
+                float(np.min(np.hypot(d[:, 0] - p[0], d[:, 1] - p[1]))) if len(d) else math.inf
+                for d, p in ((per.dots1, px[k, :2]), (per.dots2, px[k, 2:]))
+            )
+            out.append(
+                Miss(
+                    case.index,
+                    case.kind,
+                    seed,
+                    (float(d1[k, j]), float(d2[k, j])),
+                    float(min(d1[k, j], d2[k, j]) / sigma),
+                    bool(twin_of[idx[k]] == idx[j] or twin_of[idx[j]] == idx[k]),
+                    (found[0], found[1]),
+                    bool(q >= 0),
+                    err,
+                )
+            )
+    return seen, out
+
+
+def format_misses(seen: int, misses: Sequence[Miss]) -> str:
+    """The floor misses binned by separation (in spot sigmas): twins or not, the blob paired as
+    the neighbour, and how far that point lies from the missed dot."""
+    lines = [
+        f"empty floor: {seen} dots seen by both cameras (merged blobs counted once), "
+        f"{len(misses)} not paired right",
+        "| separation from the nearest dot (spot sigmas) | misses | doubled-beam twin "
+        "| each camera found a dot within 1.5 px | blob paired as the neighbour "
+        "| its point's error from this dot, % of range (median / max) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    edges = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, math.inf)
+    for lo, hi in itertools.pairwise(edges):
+        sel = [m for m in misses if lo <= m.sep_sigma < hi]
+        if not sel:
+            continue
+        errs = np.array([m.blob_err for m in sel if m.blob])
+        err = f"{np.median(errs):.2f} / {errs.max():.2f}" if len(errs) else "–"
+        lines.append(
+            f"| {lo:.1f}–{hi:.1f} | {len(sel)} | {sum(m.twin for m in sel)} "
+            f"| {sum(max(m.found_px) <= 1.5 for m in sel)} | {sum(m.blob for m in sel)} | {err} |"
+        )
+    return "\n".join(lines)
 
 
 def evaluate_case(
