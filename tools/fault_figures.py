@@ -280,9 +280,12 @@ def _first_staying(
 def run_camera(repeats: int, rng: random.Random, stationary: bool = False) -> Outcome:
     """Frames stop (the frame server answers nothing) while cruising forward on free floor
     above the camera-lost cap. ``to_zero_s`` holds the time to the first limiting command: the
-    first frame 10 % below the cruise duty that stays there 0.2 s (the emergency ramp toward the
-    cap takes 8-20 % off per 20 ms frame; a wheel-PI ripple is about 1 %). The notes give the
-    time to zero: the map older than ``safety.perception_timeout_s``, no forward motion. An injection while the safety layer
+    first frame below every frame of the 0.3 s of steady cruise before the fault (the wheel PI's
+    ripple band, ≤ 3 % wide) that stays below it for 0.2 s — the emergency ramp toward the cap
+    takes 8-20 % off per 20 ms frame, a fraction of that in a cycle run between two grids. The
+    notes add the time to the first frame 10 % below the cruise duty (the ramp under way), and
+    to zero: the map older than ``safety.perception_timeout_s``, no forward motion. An
+    injection while the safety layer
     already held the chair below the cap would show only the stale-map stop, not the camera's
     limit: the tool waits for a steady cruise above the cap first (``_cruise``).
 
@@ -298,6 +301,7 @@ def run_camera(repeats: int, rng: random.Random, stationary: bool = False) -> Ou
             "safety": {"perception_timeout_s": 1.5},
         }
     to_stop: list[float] = []
+    to_ten: list[float] = []
     with DaemonBench(perception=True, extra=extra) as b:
         _start(b, timeout_s=60.0)
         for _ in range(repeats):
@@ -311,17 +315,22 @@ def run_camera(repeats: int, rng: random.Random, stationary: bool = False) -> Ou
                 continue
             time.sleep(rng.random() * 0.04)  # a random phase of the 20 ms grids
             t_f = time.monotonic()
+            band = min(f.left_duty_pm for _, f in b.spy.after(t_f - 0.3))
             b.frames_gone = True
             time.sleep(2.0)
             frames = list(b.spy.after(t_f))
-            t_lim = _first_staying(frames, 0.9 * cruise)
+            t_lim = _first_staying(frames, band - 1.0)
+            t_ten = _first_staying(frames, 0.9 * cruise)
             zero = b.spy.first_zero_after(t_f)
             out.to_zero_s.append(float("nan") if t_lim is None else t_lim - t_f)
+            to_ten.append(float("nan") if t_ten is None else t_ten - t_f)
             to_stop.append(float("nan") if zero is None else zero - t_f)
             b.frames_gone = False
             b.head(NEUTRAL)
             wait_for(lambda: not b.moving(), 5.0)
             time.sleep(1.0)
+    med, mx = fmt_ms(to_ten)
+    out.notes.append(f"10 % below the cruise {med} / {mx} ms")
     med, mx = fmt_ms(to_stop)
     out.notes.append(f"to zero (stale map) {med} / {mx} ms")
     return out
