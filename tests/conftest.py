@@ -12,8 +12,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--soak-minutes",
         type=float,
-        default=10.0,
-        help="simulated minutes of tests/scenarios/test_soak.py (10; the half hour: 30)",
+        default=5.0,
+        help="simulated minutes of tests/scenarios/test_soak.py (5 in CI; the half hour: 30)",
     )
 
 

@@ -1,5 +1,5 @@
 """Soak (issue 6): random riding in a cluttered room, the daemon core at its configured rates:
-10 simulated minutes in CI (the pytest option ``--soak-minutes``; the half hour, about a minute
+5 simulated minutes in CI (the pytest option ``--soak-minutes``; the half hour, about a minute
 of wall time: ``python -m pytest tests/scenarios/test_soak.py --soak-minutes 30``).
 
 The rider uses a joystick (the one input that can reverse) and does what a rider does: drives
@@ -38,7 +38,7 @@ the half hour; a leak of one small array per control step would be 50x that).
 
 Not met on this laser (issue 13): with ``--soak-minutes 30`` the chair is wedged after minute 10
 (reach 192 and 173 mm in the last two windows, rider seed 7): the liveness assertion fails there;
-the 10 minutes of CI pass. Seed 7's half hour has three contacts (box 7, turning in place at
+the 5 minutes of CI (and 10) pass. Seed 7's half hour has three contacts (box 7, turning in place at
 17-33 mm/s wheel speed), duty 0 0.01-1.1 s after each; none was counted as a bump, none could be told by
 the clocks in time.
 """
