@@ -219,6 +219,12 @@ class ControlCore:
     def on_key(self, command: str, now_s: float) -> None:
         self.mux.on_key(command, now_s)
 
+    def on_input_lost(self, source: str, now_s: float) -> None:
+        """The device of rider source ``source`` says it is gone (port lost, readings stale) at
+        monotonic ``now_s``: the source is stale from now (an input of its own, so that a
+        recording replays it)."""
+        self.mux.on_lost(source)
+
     def on_status(self, status: StatusSample) -> None:
         """A control-unit reply: odometry, the map's motion, the wheel speed estimate."""
         prev = self.status

@@ -250,7 +250,7 @@ class Daemon:
 
     def _on_tilt_lost(self) -> None:
         """The tilt link lost its port or its readings went stale: a cycle now (zero)."""
-        self.core.mux.on_lost("tilt")
+        self.core.on_input_lost("tilt", time.monotonic())
         self._kick()
 
     def _kick(self) -> None:
@@ -359,7 +359,7 @@ class Daemon:
             if reading is not None:
                 self.core.on_joystick(reading)
             elif self._joystick_live:  # the link stopped vouching for it: lost now
-                self.core.mux.on_lost("joystick")
+                self.core.on_input_lost("joystick", now)
             self._joystick_live = reading is not None
         cmd = self.core.step(now)
         self.link.set_command(cmd, urgent=urgent, computed_s=now)

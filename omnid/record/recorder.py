@@ -581,6 +581,11 @@ def _key(rec: Recorder, t_ns: int, t_s: float, p: Any) -> Out:
     return [(tp.KEY, tp.json_bytes({"seq": seq, "t_s": t_s, "command": command}))]
 
 
+def _input_lost(rec: Recorder, t_ns: int, t_s: float, p: Any) -> Out:
+    seq, source = p
+    return [(tp.INPUT_LOST, tp.json_bytes({"seq": seq, "t_s": t_s, "source": source}))]
+
+
 def _status(rec: Recorder, t_ns: int, t_s: float, p: Any) -> Out:
     seq, st = p
     doc = {
@@ -686,6 +691,7 @@ _HANDLERS: dict[str, Callable[[Recorder, int, float, Any], Out]] = {
     "tilt": _tilt,
     "joystick": _joystick,
     "key": _key,
+    "input_lost": _input_lost,
     "status": _status,
     "cloud": _cloud,
     "capture": _capture,

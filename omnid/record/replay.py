@@ -209,6 +209,7 @@ def replay(
         ("tilt", tp.TILT),
         ("joystick", tp.JOYSTICK),
         ("key", tp.KEY),
+        ("input_lost", tp.INPUT_LOST),
         ("status", tp.STATUS),
     ):
         events += [(m.doc["seq"], kind, m.doc) for m in rec.topic(topic)]
@@ -242,6 +243,8 @@ def replay(
             core.on_joystick(_joystick(JoystickReading, fwd, turn, doc["t_s"]))
         elif kind == "key":
             core.on_key(doc["command"], doc["t_s"])
+        elif kind == "input_lost":
+            core.on_input_lost(doc["source"], doc["t_s"])
         elif kind == "status":
             core.on_status(
                 ControlUnitStatus(

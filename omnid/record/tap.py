@@ -98,6 +98,10 @@ class RecordingCore:
         self._core.on_key(command, now_s)
         self._rec.put("key", now_s, (self._next(), command))
 
+    def on_input_lost(self, source: str, now_s: float) -> None:
+        self._core.on_input_lost(source, now_s)
+        self._rec.put("input_lost", now_s, (self._next(), source))
+
     def on_status(self, status: Any) -> None:
         self._core.on_status(status)
         self._rec.put("status", status.timestamp_s, (self._next(), status))

@@ -45,6 +45,7 @@ DEMAND = "/rider/demand"
 TILT = "/rider/tilt"
 JOYSTICK = "/rider/joystick"
 KEY = "/rider/key"
+INPUT_LOST = "/rider/input_lost"  # a source's device says it is gone (port, stale readings)
 SAFETY = "/safety/limits"
 COMMAND = "/control_unit/command"
 STATUS = "/control_unit/status"
@@ -94,6 +95,7 @@ JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
     TILT: ("omnid.TiltReading", _obj(seq="i", t_s="n", roll_deg="n", pitch_deg="n")),
     JOYSTICK: ("omnid.JoystickReading", _obj(seq="i", t_s="n", forward="n", turn="n")),
     KEY: ("omnid.KeyCommand", _obj(seq="i", t_s="n", command="s")),
+    INPUT_LOST: ("omnid.InputLost", _obj(seq="i", t_s="n", source="s")),
     SAFETY: (
         "omnid.SafetyLimits",
         {
