@@ -32,7 +32,6 @@ import collections
 import dataclasses
 import logging
 import math
-import time
 from typing import Any
 
 import cv2
@@ -44,8 +43,6 @@ from omnid.core.occupancy import CellState, OccupancyGrid, rig_to_robot
 from omnid.core.types import PointClass, PointCloud
 from omnid.daemon.safety import Reason, contact_path_s
 from omnid.sim import suite
-from omnid.sim.settings import SimSettings
-from omnid.sim.simulator import Simulator
 
 RES_MM = 10.0
 HALF_MM = 15000.0
@@ -202,25 +199,15 @@ def run(
         return d
 
     core.safety.check = witnessed
-    settings = SimSettings(perception=perception, seed=seed, record_seen=False,  # type: ignore[arg-type]
-                           stop_on_contact=False, record_period_s=0.1)  # fmt: skip
-    kw = {"joystick": trial.rider_input} if rider == "joystick" else {"rider": trial.rider_input}
-    sim = Simulator(trial.course, core, settings, chair_settings=trial.chair, **kw)
-    w0 = time.perf_counter()
-    result = sim.run(trial.duration_s)
-    wall = time.perf_counter() - w0
-    trace = np.array(core.trace, dtype=np.float64).reshape(-1, 6)
-    st = result.steps
-    outline = suite._outline(suite._rects(trial.course))
+    _, result, trace, st, wall = suite.simulate(trial, core, perception)
+    false = suite.false_stop_steps(trace, st, suite._outline(suite._rects(trial.course)), core)
     events: collections.Counter[str] = collections.Counter()
     cells: collections.Counter[str] = collections.Counter()
     early = 0
     last_k = -2
     for now, counts, path_mm in refused:
-        k = min(int(np.searchsorted(st[:, 0], now - 1e-9)), len(st) - 1, len(trace) - 1)
-        if abs(st[k, 5]) >= suite.STANDSTILL_MM_S or trace[k, 4] <= 0:
-            continue
-        if not suite.way_clear(st[k, 2:5], trace[k, 1], trace[k, 2], outline, core):
+        k = min(int(np.searchsorted(st[:, 0], now - 1e-9)), len(st) - 1)
+        if not false[k]:
             continue
         cells.update(counts)
         if k > last_k + 1:  # a new event

@@ -606,23 +606,20 @@ def way_clear(
     return not bool(np.any(np.isfinite(hit)))
 
 
-def run_trial(
+def simulate(
     trial: Trial,
+    core: Any,
     perception: str = "truth",
-    config_changes: dict[str, Any] | None = None,
     sim_changes: dict[str, Any] | None = None,
-) -> TrialResult:
-    """Run one trial with the daemon's core and measure it (see the module docstring);
-    ``sim_changes``: further :class:`~omnid.sim.settings.SimSettings` fields (a slower
-    perception worker: ``worker_period_s``)."""
+) -> tuple[Any, Any, NDArray[np.float64], NDArray[np.float64], float]:
+    """Run ``trial`` on the simulator with the daemon's ``core``: (simulator, result, the core's
+    trace, the result's steps, wall s), the trace and the steps cut to the same length."""
     import time
 
     from omnid.sim.rider import HeadScript
     from omnid.sim.settings import SimSettings
     from omnid.sim.simulator import Simulator
 
-    changes = {**trial.config, **(config_changes or {})}
-    core = make_core(trial.rider, changes)
     settings = SimSettings(perception=perception, seed=trial.seed, record_seen=False,  # type: ignore[arg-type]
                            stop_on_contact=False, record_period_s=0.1,
                            **(sim_changes or {}))  # fmt: skip
@@ -638,16 +635,38 @@ def run_trial(
     trace = np.array(core.trace, dtype=np.float64).reshape(-1, 6)
     st = result.steps
     n = min(len(trace), len(st))
-    trace, st = trace[:n], st[:n]
+    return sim, result, trace[:n], st[:n], wall
+
+
+def false_stop_steps(
+    trace: NDArray[np.float64], st: NDArray[np.float64], outline: NDArray[np.float64], core: Any
+) -> NDArray[np.bool_]:
+    """The control steps that are false stops (module docstring): the rider asked to move, the
+    chair stood still, and by truth (:func:`way_clear`) the way was clear."""
+    false = np.zeros(len(st), dtype=bool)
+    for i in np.flatnonzero((trace[:, 4] > 0) & (np.abs(st[:, 5]) < STANDSTILL_MM_S)):
+        false[i] = way_clear(st[i, 2:5], trace[i, 1], trace[i, 2], outline, core)
+    return false
+
+
+def run_trial(
+    trial: Trial,
+    perception: str = "truth",
+    config_changes: dict[str, Any] | None = None,
+    sim_changes: dict[str, Any] | None = None,
+) -> TrialResult:
+    """Run one trial with the daemon's core and measure it (see the module docstring);
+    ``sim_changes``: further :class:`~omnid.sim.settings.SimSettings` fields (a slower
+    perception worker: ``worker_period_s``)."""
+    changes = {**trial.config, **(config_changes or {})}
+    core = make_core(trial.rider, changes)
+    sim, result, trace, st, wall = simulate(trial, core, perception, sim_changes)
+    n = len(st)
     speed = np.abs(st[:, 5])
     poses = st[:, 2:5]
     everything = _rects(trial.course)
     outline = _outline(everything)
-    # false stops
-    cand = np.flatnonzero((trace[:, 4] > 0) & (speed < STANDSTILL_MM_S))
-    false = np.zeros(n, dtype=bool)
-    for i in cand:
-        false[i] = way_clear(poses[i], trace[i, 1], trace[i, 2], outline, core)
+    false = false_stop_steps(trace, st, outline, core)
     starts = np.flatnonzero(np.diff(np.concatenate([[0], false.astype(np.int8)])) == 1)
     events = len(starts)
     unseen = sum("unknown_stop" in result.reasons_at(int(i)) for i in starts)
