@@ -45,7 +45,7 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   a phantom of one capture's wrong pairing is doubt, not a wall.
 - Exact obstacle evidence: besides the cells, the map keeps the obstacle dots themselves (anchor
   frame and height, one per ``point_spacing_mm``, at most ``obstacle_points_max``; per cell those
-  of the latest capture that saw it) for as long as their cell stays OBSTACLE. :meth:`FreeSpaceMap.blocking_evidence` gives the safety layer those points
+  of the captures that saw it within ``point_memory_travel_mm`` of travel) for as long as their cell stays OBSTACLE. :meth:`FreeSpaceMap.blocking_evidence` gives the safety layer those points
   where they exist and the cell centres (with their half-diagonal) elsewhere, transformed
   exactly into the robot frame — no cell quantisation and no resampling error where the laser
   saw the thing (a doorway's jambs, a wall beside the chair).
