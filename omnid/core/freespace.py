@@ -291,9 +291,7 @@ class FreeSpaceMap:
         x, y, th = self._pose
         c, sn = math.cos(th), math.sin(th)
         dx, dy = self._points[:, 0] - x, self._points[:, 1] - y
-        self._points = np.column_stack(
-            [c * dx + sn * dy, -sn * dx + c * dy, self._points[:, 2:]]
-        )
+        self._points = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy, self._points[:, 2:]])
         self._pose = (0.0, 0.0, 0.0)
         self._occupied = None
         # The cells were resampled (nearest neighbour, up to half a cell off), the points moved
@@ -545,7 +543,7 @@ class FreeSpaceMap:
             fresh = np.zeros(a.states.shape, dtype=bool)
             fresh[ni[nin], nj[nin]] = True
             oi, oj, oin = a.cell_index(self._points[:, :2])
-            recent = self.travel_mm - self._points[:, 3] <= self.settings.point_memory_travel_mm
+            recent = self.travel_mm - self._points[:, 3] < self.settings.point_memory_travel_mm
             keep = ~(oin & fresh[oi, oj]) | recent
             self._points = self._points[keep]
         stamp = np.full((len(xyh_anchor), 1), self.travel_mm)
