@@ -377,6 +377,7 @@ class BeamTracks:
     floor_mm: NDArray[np.float64]  # (K, 3)
     floor_x_mm: NDArray[np.float64]  # (K,) floor_mm[:, 0], contiguous (the look-up's hot loop)
     floor_y_mm: NDArray[np.float64]  # (K,) floor_mm[:, 1]
+    slope2: NDArray[np.float64]  # (K,) |s|² of each beam (for slope_sigma, per triple)
     # the floor points binned in square cells of ``_CELL_MM`` (bands of Y, then X), sorted by
     # (band, X): a disk's neighbours are a few short runs of this order (_beams_near)
     cell_order: NDArray[np.intp]  # (K,) beams sorted by (band, X)
@@ -421,6 +422,7 @@ class BeamTracks:
             np.asarray(laser.floor_mm),
             np.ascontiguousarray(fl[:, 0]),
             np.ascontiguousarray(fl[:, 1]),
+            np.sum(s**2, axis=1),
             cell_order,
             cell_start,
             x_rank,
@@ -434,7 +436,7 @@ class BeamTracks:
         H = self.floor_depth_mm
         oz = self.source_mm[2]
         so = self.source_sigma_mm
-        s2 = np.sum(self.slope[beam] ** 2, axis=1)
+        s2 = self.slope2[beam]
         lever_o = (u * H - 1.0) / (H - oz)
         lever_p = (1.0 - oz * u) / (H - oz)
         var = lever_o**2 * (0.5 * (so[0] ** 2 + so[1] ** 2) + s2 * so[2] ** 2)
