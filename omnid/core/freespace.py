@@ -112,6 +112,8 @@ class FreeSpaceSettings(Settings):
     obstacle_confirm_captures  likewise for an obstacle
     obstacle_points_max    exact obstacle points kept (0: cells only)
     point_spacing_mm       one kept point per this lattice spacing (the newest)
+    point_memory_travel_mm a cell seen again keeps the points it was given within this much
+                           travel, beside the new capture's, and loses older ones
     carve_tolerance_mm     a kept obstacle point this close to a later ray, well before the
                            ray's dot, is dropped (0: no carving)
     """
@@ -138,6 +140,10 @@ class FreeSpaceSettings(Settings):
     obstacle_confirm_captures: int = setting(2, 1, 20)
     obstacle_points_max: int = setting(20000, 0, 1000000)
     point_spacing_mm: float = setting(10.0, 1.0, 100.0)
+    # 0.25 % odometry drift (above): 1 mm after 400 mm. A capture's dots fall anywhere on a
+    # face; the next may hit the same cell 40 mm farther back, and taking only its points
+    # moved a 60 mm threshold's edge back by that until a later capture hit the edge again
+    point_memory_travel_mm: float = setting(400.0, 0.0, 5000.0)
     # below half the thinnest obstacle worth keeping (a 40 mm post: a ray that close would have
     # hit it), above the ray's own error (dot noise, the laser a centimetre off the rig origin)
     carve_tolerance_mm: float = setting(15.0, 0.0, 100.0)
@@ -202,7 +208,8 @@ class FreeSpaceMap:
         self._dropoff_seen: NDArray[np.uint8] = np.zeros(shape, np.uint8)  # captures in a row
         self._obstacle_seen: NDArray[np.uint8] = np.zeros(shape, np.uint8)
         self._from_points: NDArray[np.uint8] = np.zeros(shape, np.uint8)  # obstacle from dots
-        self._points = np.zeros((0, 3))  # exact obstacle points: anchor x, y, height (mm)
+        # exact obstacle points: anchor x, y, height (mm) and the travel when seen (mm)
+        self._points = np.zeros((0, 4))
         self._pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  # robot in the anchor frame
         self._now_s = 0.0
         self.travel_mm = 0.0  # odometry travel so far (translation + |dθ| · 1 m)
@@ -284,7 +291,9 @@ class FreeSpaceMap:
         x, y, th = self._pose
         c, sn = math.cos(th), math.sin(th)
         dx, dy = self._points[:, 0] - x, self._points[:, 1] - y
-        self._points = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy, self._points[:, 2]])
+        self._points = np.column_stack(
+            [c * dx + sn * dy, -sn * dx + c * dy, self._points[:, 2:]]
+        )
         self._pose = (0.0, 0.0, 0.0)
         self._occupied = None
         # The cells were resampled (nearest neighbour, up to half a cell off), the points moved
@@ -524,9 +533,10 @@ class FreeSpaceMap:
 
     def _add_points(self, xyh_anchor: NDArray[np.float64]) -> None:
         """Keep new obstacle dots (anchor x, y and height, mm) as exact evidence. A cell keeps
-        the points of the latest capture that saw an obstacle in it: the nearest view and the
-        least odometry between then and now (older views of the same face, placed by older
-        odometry, would smear it by centimetres)."""
+        the points of the captures that saw an obstacle in it within the last
+        ``point_memory_travel_mm`` of travel: the nearest views and the least odometry between
+        then and now (older views of the same face, placed by older odometry, would smear it by
+        centimetres), but not only the latest, whose dots may have missed the cell's edge."""
         if self.settings.obstacle_points_max == 0 or len(xyh_anchor) == 0:
             return
         a = self._anchor
@@ -535,9 +545,11 @@ class FreeSpaceMap:
             fresh = np.zeros(a.states.shape, dtype=bool)
             fresh[ni[nin], nj[nin]] = True
             oi, oj, oin = a.cell_index(self._points[:, :2])
-            keep = ~(oin & fresh[oi, oj])
+            recent = self.travel_mm - self._points[:, 3] <= self.settings.point_memory_travel_mm
+            keep = ~(oin & fresh[oi, oj]) | recent
             self._points = self._points[keep]
-        self._points = np.vstack([self._points, xyh_anchor])
+        stamp = np.full((len(xyh_anchor), 1), self.travel_mm)
+        self._points = np.vstack([self._points, np.hstack([xyh_anchor, stamp])])
         ni, nj, nin = a.cell_index(xyh_anchor[:, :2])
         self._from_points[ni[nin], nj[nin]] = 1
 
@@ -972,7 +984,7 @@ class FreeSpaceMap:
         self._dropoff_seen[:] = 0
         self._obstacle_seen[:] = 0
         self._from_points[:] = 0
-        self._points = np.zeros((0, 3))
+        self._points = np.zeros((0, 4))
         self._occupied = None
         self._grid = None
         self.version += 1

@@ -151,10 +151,11 @@ def _expand_ranges(
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """All (owner, position) with lo[owner] <= position < hi[owner], vectorised."""
     cnt = np.maximum(hi - lo, 0)
+    ends = np.cumsum(cnt)
     owner = np.repeat(np.arange(len(lo)), cnt)
-    start = np.repeat(np.cumsum(cnt) - cnt, cnt)
-    pos = np.arange(int(cnt.sum())) - start + np.repeat(lo, cnt)
-    return owner, pos.astype(np.intp)
+    # position = its rank among all + (lo − the owner's first rank): one repeat, not two
+    pos = np.arange(int(ends[-1]) if len(ends) else 0) + np.repeat(lo - (ends - cnt), cnt)
+    return owner, pos.astype(np.intp, copy=False)
 
 
 def _candidates_by_row(
@@ -374,6 +375,8 @@ class BeamTracks:
     x_order: NDArray[np.intp]  # beams sorted by floor X
     floor_x_sorted: NDArray[np.float64]
     floor_mm: NDArray[np.float64]  # (K, 3)
+    floor_x_mm: NDArray[np.float64]  # (K,) floor_mm[:, 0], contiguous (the look-up's hot loop)
+    floor_y_mm: NDArray[np.float64]  # (K,) floor_mm[:, 1]
     # the floor points binned in square cells of ``_CELL_MM`` (bands of Y, then X), sorted by
     # (band, X): a disk's neighbours are a few short runs of this order (_beams_near)
     cell_order: NDArray[np.intp]  # (K,) beams sorted by (band, X)
@@ -416,6 +419,8 @@ class BeamTracks:
             order,
             laser.floor_mm[order, 0],
             np.asarray(laser.floor_mm),
+            np.ascontiguousarray(fl[:, 0]),
+            np.ascontiguousarray(fl[:, 1]),
             cell_order,
             cell_start,
             x_rank,
@@ -503,8 +508,10 @@ def _beams_near(
     own, pos = _expand_ranges(tr.cell_start[row + c_lo[qb]], tr.cell_start[row + c_hi[qb] + 1])
     q = qb[own]
     k = tr.cell_order[pos]
-    d = np.hypot(tr.floor_mm[k, 0] - xy[q, 0], tr.floor_mm[k, 1] - xy[q, 1])
-    ok = d <= radius[q]
+    dx = tr.floor_x_mm[k] - xy[q, 0]
+    dy = tr.floor_y_mm[k] - xy[q, 1]
+    rq = radius[q]
+    ok = dx * dx + dy * dy <= rq * rq
     q, k = q[ok], k[ok]
     order = np.argsort(q * len(tr.x_rank) + tr.x_rank[k], kind="stable")
     return q[order], k[order]
@@ -546,7 +553,8 @@ def match_triples(
     )
     if len(i) == 0:
         return _empty_triples()
-    m = np.hstack([rig.cam1.ideal_offsets(d1[i, :2]), rig.cam2.ideal_offsets(d2[j, :2])])
+    off1, off2 = rig.cam1.ideal_offsets(d1[:, :2]), rig.cam2.ideal_offsets(d2[:, :2])
+    m = np.hstack([off1[i], off2[j]])  # per dot, then per pair
     A = best_design_matrix(rig)
     theta = m @ np.linalg.pinv(A).T  # (p, q, u) of each pair
     u_st = theta[:, 2]
@@ -643,7 +651,9 @@ def _dominant_triples(
     triples.
     """
     t_all = len(w)
-    open_ = np.arange(t_all, dtype=np.intp)
+    # kept in order of decreasing weight: a stable sort of the nodes alone then lists each
+    # node's triples heaviest first (ties by index, as a sort by (node, −weight) would)
+    open_ = np.argsort(-w, kind="stable").astype(np.intp)
     sure: list[NDArray[np.intp]] = []
     n_nodes = int(nodes.max()) + 1 if t_all else 0
     while len(open_):
@@ -651,7 +661,7 @@ def _dominant_triples(
         ww = w[open_]
         flat = nd.ravel()  # (3T,) entry e belongs to triple e // 3
         we = np.repeat(ww, 3)
-        order = np.lexsort((-we, flat))
+        order = np.argsort(flat, kind="stable")
         fs = flat[order]
         first = np.concatenate([[True], fs[1:] != fs[:-1]])
         starts = np.flatnonzero(first)
@@ -666,12 +676,12 @@ def _dominant_triples(
         dom = ww > s_t
         if not dom.any():
             break
-        sure.append(open_[dom])
+        sure.append(np.sort(open_[dom]))
         used = np.zeros(n_nodes, dtype=bool)
         used[nd[dom].ravel()] = True
         open_ = open_[~used[nd].any(axis=1)]
     taken = np.concatenate(sure) if sure else np.zeros(0, np.intp)
-    return taken.astype(np.intp), open_
+    return taken.astype(np.intp), np.sort(open_)
 
 
 def _max_weight_packing(
