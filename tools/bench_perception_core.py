@@ -10,7 +10,9 @@ calibration comes from the simulated installer's captures (floor + extras, other
 run is end to end. Everything runs with cv2.setNumThreads(1) and one BLAS thread.
 
 Printed per laser: median and p90 (and min) of each stage (each timed on its own over
-``--repeats`` runs) and of the whole ``perceive``, next to the same-run reference: the thesis
+``--repeats`` runs, called as ``pipeline.perceive_detailed`` calls it: ``match_triples`` and
+``triangulate_on_beams``), what the whole ``perceive`` spends beyond them (min − the stages'
+mins), and of the whole ``perceive``, next to the same-run reference: the thesis
 pipeline (``perceive(..., "thesis")``) and, with ``--old-root DIR`` (a checkout of the thesis-era
 omnid, e.g. ``git archive 80b18a4 | tar -x -C DIR``), that checkout's ``best`` on the same
 captures (its own floor calibration, in a subprocess); the number of points and how many are
@@ -38,9 +40,9 @@ import numpy as np  # noqa: E402
 from omnid.core.classify import classify  # noqa: E402
 from omnid.core.detect import detect_dots  # noqa: E402
 from omnid.core.geometry import StereoRig  # noqa: E402
-from omnid.core.matching import match_dots  # noqa: E402
+from omnid.core.matching import _tracks, match_triples  # noqa: E402
 from omnid.core.pipeline import perceive  # noqa: E402
-from omnid.core.triangulate import triangulate  # noqa: E402
+from omnid.core.triangulate import triangulate_on_beams  # noqa: E402
 from omnid.core.types import PointCloud, StereoCapture  # noqa: E402
 from omnid.experiments.machine import load_average, one_core  # noqa: E402
 from omnid.sim.installation import calibrate_installed  # noqa: E402
@@ -154,10 +156,22 @@ def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
         f"\n## laser {name}: dots cast {len(xyz)}; visible in both cameras {n_vis}; "
         f"perceived points {len(cloud.xyz)}, right {right}"
     )
+    # each stage as pipeline.perceive_detailed calls it (calibration with a known source)
+    assert calib.laser is not None and calib.laser.source_known
+    model, sigma = calib.laser, calib.pixel_sigma_px
     d1 = detect_dots(cap.mask1, cap.base1, "best")
     d2_ = detect_dots(cap.mask2, cap.base2, "best")
-    pixels = match_dots(calib, d1, d2_, "best")
-    xyz_b, cov_b = triangulate(calib.rig, pixels, "best", 0.3)
+    m = match_triples(calib.rig, model, sigma, d1, d2_)
+    pixels = np.column_stack([d1[m.i1, :2], d2_[m.i2, :2]])
+    tr = _tracks(calib.rig, model)
+
+    def on_beams() -> tuple[np.ndarray, np.ndarray]:
+        slope_sigma = tr.slope_sigma(m.beam, m.inv_depth)
+        return triangulate_on_beams(
+            calib.rig, pixels, tr.slope[m.beam], tr.cross_mm[m.beam], slope_sigma, sigma
+        )
+
+    xyz_b, cov_b = on_beams()
     pc = PointCloud(xyz_b, cov_b, pixels, np.zeros(len(pixels), np.uint8), calib.floor_depth_mm)
     stages: list[tuple[str, Callable[[], object]]] = [
         (
@@ -167,18 +181,21 @@ def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
                 detect_dots(cap.mask2, cap.base2, "best"),
             ),
         ),
-        ("match best", lambda: match_dots(calib, d1, d2_, "best")),
-        ("triangulate best", lambda: triangulate(calib.rig, pixels, "best", 0.3)),
+        ("match best (triples)", lambda: match_triples(calib.rig, model, sigma, d1, d2_)),
+        ("triangulate on beams", on_beams),
         ("classify", lambda: classify(pc)),
         ("perceive best, whole", lambda: perceive(cap, calib, "best")),
         ("perceive thesis, whole (ref)", lambda: perceive(cap, calib, "thesis")),
     ]
     print(f"{'stage':34s} {'min ms':>8s} {'median ms':>10s} {'p90 ms':>8s}")
     whole: dict[str, float] = {}
+    mins: dict[str, float] = {}
     for label, fn in stages:
         lo, med, p90 = timed(fn, repeats)
-        whole[label] = med
+        whole[label], mins[label] = med, lo
         print(f"{label:34s} {lo:8.2f} {med:10.2f} {p90:8.2f}")
+    rest = mins["perceive best, whole"] - sum(mins[label] for label, _ in stages[:4])
+    print(f"{'rest of perceive (whole - stages)':34s} {rest:8.2f}")
     ref = whole["perceive thesis, whole (ref)"]
     best = whole["perceive best, whole"]
     print(f"ratio thesis / best (median): {ref / best:.2f}")
@@ -191,6 +208,7 @@ def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
             lo, med, p90, n = old
             print(f"{'old best, whole (ref)':34s} {lo:8.2f} {med:10.2f} {p90:8.2f}  ({n} points)")
             print(f"ratio old best / best (median): {med / best:.2f}")
+            print(f"ratio old best / best (min): {lo / mins['perceive best, whole']:.2f}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -120,6 +120,10 @@ _EMPTY_SHAPE = (0, 3)
 _ALLOWED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 
 
+#: The defaults, built (and range-checked) once: detect_dots runs per frame.
+_DEFAULT_PARAMS = DetectionParams()
+
+
 def _empty() -> NDArray[np.float64]:
     return np.zeros(_EMPTY_SHAPE, dtype=np.float64)
 
@@ -1079,20 +1083,23 @@ def _neighbour_pull(
     t = np.abs(top[close]).astype(np.float64)
     t = np.maximum(t, 1e-6)
     cr, cc, amp = pr.copy(), pc.copy(), t.copy()
-    inv2v = 1.0 / (2.0 * filtered_var)
+    neg_inv2v = -1.0 / (2.0 * filtered_var)
+    pr_i, pc_i, floor_t = pr[i], pc[i], 0.05 * t  # (loop invariants)
     step = np.zeros(m)
-    for _ in range(_PULL_ITERATIONS):
-        dr, dc = cr[j] - pr[i], cc[j] - pc[i]
-        lj = amp[j] * np.exp(-(dr * dr + dc * dc) * inv2v)  # neighbour j's light at p_i
-        own = np.exp(-((cr - pr) ** 2 + (cc - pc) ** 2) * inv2v)
+    for it in range(_PULL_ITERATIONS):
+        dr, dc = cr[j] - pr_i, cc[j] - pc_i
+        lj = amp[j] * np.exp((dr * dr + dc * dc) * neg_inv2v)  # neighbour j's light at p_i
+        er, ec = cr - pr, cc - pc
+        own = np.exp((er * er + ec * ec) * neg_inv2v)
         sum_l = np.bincount(i, weights=lj, minlength=m)
         sum_r = np.bincount(i, weights=lj * dr, minlength=m)
         sum_c = np.bincount(i, weights=lj * dc, minlength=m)
-        a_own = np.maximum(amp * own, 0.05 * t)
+        a_own = np.maximum(amp * own, floor_t)
         new_r, new_c = pr - sum_r / a_own, pc - sum_c / a_own
-        step = np.hypot(new_r - cr, new_c - cc)
+        if it == _PULL_ITERATIONS - 1:  # only the last step is judged
+            step = np.hypot(new_r - cr, new_c - cc)
         cr, cc = new_r, new_c
-        amp = np.maximum(t - sum_l, 0.05 * t) / np.maximum(own, 1e-3)
+        amp = np.maximum(t - sum_l, floor_t) / np.maximum(own, 1e-3)
     pull_r[close], pull_c[close] = pr - cr, pc - cc
     bad = (step > _COUPLING_PX) | (np.hypot(pr - cr, pc - cc) > _PULL_MAX_PX)
     if bad.any():
@@ -1262,7 +1269,7 @@ def detect_dots(
     Raises :class:`~omnid.errors.InputError` for arrays that are not images of one shape and
     dtype, and ``ValueError`` for an unknown method. No dots (or an empty image) → (0, 3).
     """
-    p = params or DetectionParams()
+    p = params or _DEFAULT_PARAMS
     m, b = _check_pair(mask, base)
     if m.shape[0] == 0 or m.shape[1] == 0:
         return _empty()

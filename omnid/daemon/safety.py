@@ -63,7 +63,7 @@ import logging
 import math
 from dataclasses import dataclass
 from enum import Enum
-from typing import Any, Literal
+from typing import Any, Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -159,6 +159,13 @@ class SafetySettings(Settings):
     # (the tail swings to a jamb) while the straight line is clear (docs/benchmarks.md)
     soften: bool = True
     soften_forward_mm_s: float = setting(100.0, 0.0, 300.0)
+    # a limited straight forward request may be softened into a forward arc that shifts the
+    # chair sideways by at most this over the slow zone's travel (a door-passing assist): arcs of
+    # radius slow_distance²/(2·shift) and that over √2 and 2 (s²/2R over s = slow, slow/2^¼,
+    # slow/√2), each way. 60 would be the gap beside this chair in an 820 mm door; 0 (the
+    # default until the suite, the demo story and the replays are measured with it —
+    # docs/benchmarks.md): straight requests are only scaled
+    soften_side_shift_mm: float = setting(0.0, 0.0, 300.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -329,6 +336,15 @@ class SafetyLayer:
             [[self._x0, self._y0], [self._x0, self._y1], [self._x1, self._y0], [self._x1, self._y1]]
         )
         self.r_max_mm = float(np.max(np.hypot(corners[:, 0], corners[:, 1])))
+        # radii (mm) of the arcs a limited straight request may be softened into: a sideways
+        # shift of soften_side_shift_mm over s = slow, slow/2^¼, slow/√2 of travel (s²/2R); only
+        # those wider than the farthest corner's radius, whose score (progress less deviation)
+        # can be positive
+        shift = s.soften_side_shift_mm
+        self._arc_radii_mm: tuple[float, ...] = ()
+        if shift > 0.0:
+            radii = (s.slow_distance_mm**2 / (2.0 * shift) / k for k in (1.0, math.sqrt(2.0), 2.0))
+            self._arc_radii_mm = tuple(r for r in radii if r > self.r_max_mm)
         self._pts_cache: tuple[float, NDArray[np.float64]] | None = None
         self._map_key: object = None  # the map content the caches below belong to
         # blocking evidence of the current map: x, y, grow (mm), drop-off
@@ -336,7 +352,8 @@ class SafetyLayer:
             tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
             | None
         ) = None
-        self._sweeps: dict[tuple[float, float], tuple[float, CellState | None, float]] = {}
+        self._sweeps: dict[tuple[float, float], tuple[float, CellState | None]] = {}
+        self._fractions: dict[tuple[float, float], float] = {}
         self._unknown: dict[tuple[float, float], tuple[float, float]] = {}
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
@@ -406,16 +423,27 @@ class SafetyLayer:
         standing chair with a held command costs a dictionary lookup). :meth:`sweep_reference`
         is the slow sampled sweep this is tested against.
         """
+        clearance, state = self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+        return clearance, state, self._sweep_unknown(grid, v_mm_s, omega_rad_s, clearance)
+
+    def _sweep_blocking(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        evidence: Evidence | None,
+        evidence_key: object,
+    ) -> tuple[float, CellState | None]:
+        """:meth:`sweep`'s clearance and blocking state (cached per map content and twist)."""
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm  # speed of the fastest point
         if u <= 0.0:
-            return math.inf, None, 0.0
+            return math.inf, None
         self._use_map(grid, evidence, evidence_key)
         cached = self._sweeps.get((v_mm_s, omega_rad_s))
         if cached is not None:
             return cached
         assert self._blocking is not None
         bx, by, grow, bdrop = self._blocking
-        xs, ys = self._centres(grid)
         sb = self._contact(bx, by, grow, v_mm_s, omega_rad_s, u)
         clearance, state = math.inf, None
         if sb.size:
@@ -425,17 +453,32 @@ class SafetyLayer:
                 h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
                 tie = sb <= clearance + h
                 state = CellState.DROPOFF if np.any(bdrop[tie]) else CellState.OBSTACLE
-        h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
-        rect = (self._x0 - h, self._x1 + h, self._y0 - h, self._y1 + h)
-        unknown = 0.0
-        if u > self.settings.unknown_speed_mm_s:  # the fraction caps only what is faster
-            unknown = self._unknown_fraction(grid, xs, ys, v_mm_s, omega_rad_s, rect, u, clearance)
-        result = (clearance, state, unknown)
+        result = (clearance, state)
         if len(self._sweeps) >= 256:
             self._sweeps.clear()
         if self._map_key is not None:
             self._sweeps[(v_mm_s, omega_rad_s)] = result
         return result
+
+    def _sweep_unknown(
+        self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float, clearance_mm: float
+    ) -> float:
+        """:meth:`sweep`'s unknown fraction (after :meth:`_sweep_blocking` for this map)."""
+        u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
+        if u <= self.settings.unknown_speed_mm_s:  # the fraction caps only what is faster
+            return 0.0
+        cached = self._fractions.get((v_mm_s, omega_rad_s))
+        if cached is not None and self._map_key is not None:
+            return cached
+        xs, ys = self._centres(grid)
+        h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
+        rect = (self._x0 - h, self._x1 + h, self._y0 - h, self._y1 + h)
+        unknown = self._unknown_fraction(grid, xs, ys, v_mm_s, omega_rad_s, rect, u, clearance_mm)
+        if len(self._fractions) >= 256:
+            self._fractions.clear()
+        if self._map_key is not None:
+            self._fractions[(v_mm_s, omega_rad_s)] = unknown
+        return unknown
 
     def _use_map(self, grid: OccupancyGrid, evidence: Evidence | None, key: object) -> None:
         """Make the caches belong to this map content (uncacheable: evidence without a key)."""
@@ -448,6 +491,7 @@ class SafetyLayer:
             return
         self._map_key = map_key
         self._sweeps.clear()
+        self._fractions.clear()
         self._unknown.clear()
         if evidence is None:
             xs, ys = self._centres(grid)
@@ -634,7 +678,7 @@ class SafetyLayer:
         s = self.settings
         if s.escape_speed_mm_s <= 0.0:
             return False
-        self.sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)  # cached after check()
+        self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)  # cached
         d = self.escape_gaps(grid, v_mm_s, omega_rad_s)
         if d.shape[1] == 0:
             return False  # nothing near, yet in the stop zone: not a pocket, keep the refusal
@@ -763,20 +807,40 @@ class SafetyLayer:
         if not (math.isfinite(v_mm_s) and math.isfinite(omega_rad_s)):
             return self._report(SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.FAULT,)), now_s)
         decision = self._limit(grid, v_mm_s, omega_rad_s, perception_age_s, evidence, evidence_key)
-        if decision.scale < 1.0 and omega_rad_s != 0.0 and self.settings.soften:
+        # a straight request only when refused: while it may still move, the arcs' caps (not
+        # where they lead) would choose among them
+        softenable = omega_rad_s != 0.0 or (decision.stopped and v_mm_s > 0.0)
+        if decision.scale < 1.0 and softenable and self.settings.soften:
             decision = self.soften(
                 grid, v_mm_s, omega_rad_s, decision, perception_age_s, evidence, evidence_key
             )
         return self._report(decision, now_s)
 
     def soften_candidates(self, v_mm_s: float, omega_rad_s: float) -> list[tuple[float, float]]:
-        """The twists (mm/s, rad/s) a limited turn (v, ω ≠ 0) may be softened into: the same turn
-        direction, never a reversed travel direction, never faster than asked — the turn at
-        1/2 and 1/4 of ω (a larger radius), an arc without its travel (a turn in place) or with
-        half of it, an arc without its turn; a turn in place also with a forward component
-        (``soften_forward_mm_s`` and half of it, fastest point) at ω and ω/2: its turn centre
-        moved ahead so that the tail swings through less of what lies beside the chair."""
+        """The twists (mm/s, rad/s) a limited request may be softened into.
+
+        A turn (v, ω ≠ 0): the same turn direction, never a reversed travel direction, never
+        faster than asked — the turn at 1/2 and 1/4 of ω (a larger radius), an arc without its
+        travel (a turn in place) or with half of it, an arc without its turn; a turn in place
+        also with a forward component (``soften_forward_mm_s`` and half of it, fastest point) at
+        ω and ω/2: its turn centre moved ahead so that the tail swings through less of what lies
+        beside the chair.
+
+        A straight forward request (v > 0, ω = 0): forward arcs each way whose radii shift the
+        chair sideways by ``soften_side_shift_mm`` over the slow zone's travel (``_arc_radii_mm``),
+        their fastest point no faster than asked (v·R/(R + r), r the farthest corner's radius) —
+        the heading correction a rider a few degrees off a door's line needs. Reverse straight
+        requests have none."""
         w = omega_rad_s
+        if w == 0.0:
+            if v_mm_s <= 0.0:
+                return []
+            r = self.r_max_mm
+            out = []
+            for radius in self._arc_radii_mm:
+                v = v_mm_s * radius / (radius + r)
+                out += [(v, v / radius), (v, -v / radius)]
+            return out
         out = [(v_mm_s, 0.5 * w), (v_mm_s, 0.25 * w)]
         if v_mm_s != 0.0:
             out += [(0.0, w), (0.5 * v_mm_s, w), (0.5 * v_mm_s, 0.5 * w), (v_mm_s, 0.0)]
@@ -802,27 +866,45 @@ class SafetyLayer:
         motion minus deviation from it, in mm/s of the footprint's motion (v, and ω times the
         farthest corner's radius): ``a·d̂ − |a − (a·d̂)·d̂|``. Standing still scores 0, so a
         candidate runs only if it moves the chair more the way the rider asked than aside; the
-        request's own limited twist wins ties. Reason ``softened`` with the candidate's own."""
+        request's own limited twist wins ties. Reason ``softened`` with the candidate's own.
+
+        Only as many candidates are checked as can still win: the score is proportional to the
+        scale a rule leaves (``score(k·a) = k·score(a)``), so a candidate's score unlimited bounds
+        what it can reach. Candidates are checked best bound first, the rest are dropped once
+        none of their bounds beats the best score found, and a candidate's rules stop as soon as
+        its cap so far leaves it no chance (:meth:`_limit`'s ``beat_scale``). The choice is the
+        one checking every candidate in turn would make (up to exact ties of score)."""
         r = self.r_max_mm
         dx, dy = v_mm_s, omega_rad_s * r
         norm = math.hypot(dx, dy)
         ux, uy = dx / norm, dy / norm
 
-        def score(d: SafetyDecision) -> float:
-            ax, ay = d.v_mm_s, d.omega_rad_s * r
+        def score(v: float, w: float) -> float:
+            ax, ay = v, w * r
             p = ax * ux + ay * uy
             return p - math.hypot(ax - p * ux, ay - p * uy)
 
-        best, best_score = limited, score(limited)
-        for v, w in self.soften_candidates(v_mm_s, omega_rad_s):
-            d = self._limit(grid, v, w, perception_age_s, evidence, evidence_key)
-            sc = score(d)
+        best, best_score = limited, score(limited.v_mm_s, limited.omega_rad_s)
+        bounded = [(score(v, w), v, w) for v, w in self.soften_candidates(v_mm_s, omega_rad_s)]
+        bounded.sort(key=lambda c: -c[0])  # stable: list order among equal bounds
+        for bound, v, w in bounded:
+            if bound <= best_score + 1e-6:
+                break  # neither this candidate nor any after it can win
+            d = self._limit(
+                grid, v, w, perception_age_s, evidence, evidence_key, (best_score + 1e-6) / bound
+            )
+            if d is None:
+                continue
+            sc = bound * d.scale
             if d.scale > 0.0 and sc > best_score + 1e-6:
                 best, best_score = d, sc
         if best is limited:
             return limited
         u = abs(v_mm_s) + abs(omega_rad_s) * r
-        scale = min(1.0, (abs(best.v_mm_s) + abs(best.omega_rad_s) * r) / u)
+        if omega_rad_s == 0.0:
+            scale = min(1.0, best.v_mm_s / v_mm_s)  # of the asked forward speed
+        else:
+            scale = min(1.0, (abs(best.v_mm_s) + abs(best.omega_rad_s) * r) / u)
         return SafetyDecision(
             best.v_mm_s,
             best.omega_rad_s,
@@ -830,6 +912,29 @@ class SafetyLayer:
             best.clearance_mm,
             _unique([Reason.SOFTENED, *best.reasons]),
         )
+
+    @overload
+    def _limit(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        perception_age_s: float | None,
+        evidence: Evidence | None,
+        evidence_key: object,
+    ) -> SafetyDecision: ...
+
+    @overload
+    def _limit(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        perception_age_s: float | None,
+        evidence: Evidence | None,
+        evidence_key: object,
+        beat_scale: float,
+    ) -> SafetyDecision | None: ...
 
     def _limit(
         self,
@@ -839,28 +944,40 @@ class SafetyLayer:
         perception_age_s: float | None,
         evidence: Evidence | None,
         evidence_key: object,
-    ) -> SafetyDecision:
-        """The request (v, ω) scaled by the most restrictive rule (no softening, no logging)."""
+        beat_scale: float = -1.0,
+    ) -> SafetyDecision | None:
+        """The request (v, ω) scaled by the most restrictive rule (no softening, no logging).
+
+        ``beat_scale`` (softening): ``None`` as soon as the rules checked so far leave a scale
+        ≤ it — the rules only ever lower the scale, so the candidate cannot win; the dearer
+        rules (escape gaps, unseen space, the unknown fraction) are then never evaluated."""
         s = self.settings
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
         if u == 0.0:
             return SafetyDecision(0.0, 0.0, 1.0, math.inf)
         reasons: list[Reason] = []
         caps = [math.inf]
+        beat_cap = beat_scale * u
         stale = perception_age_s is None or perception_age_s > s.perception_timeout_s
         if stale and v_mm_s > 0:
             reasons.append(Reason.PERCEPTION_STALE)
             caps.append(0.0)
-        clearance, state, unknown = self.sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+            if beat_scale >= 0.0:
+                return None
+        clearance, state = self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
         if clearance <= s.stop_distance_mm:
+            escape_cap = u * min(
+                s.escape_speed_mm_s / abs(v_mm_s) if v_mm_s else math.inf,
+                s.escape_turn_rad_s / abs(omega_rad_s) if omega_rad_s else math.inf,
+            )
+            if beat_scale >= 0.0 and escape_cap <= beat_cap:
+                return None  # not even as an escape move
             escape = state is CellState.OBSTACLE and self.is_escape(
                 grid, v_mm_s, omega_rad_s, evidence, evidence_key
             )
             if escape:
                 reasons.append(Reason.ESCAPE)
-                cap_v = s.escape_speed_mm_s / abs(v_mm_s) if v_mm_s else math.inf
-                cap_w = s.escape_turn_rad_s / abs(omega_rad_s) if omega_rad_s else math.inf
-                caps.append(u * min(cap_v, cap_w))
+                caps.append(escape_cap)
             else:
                 reasons.append(
                     Reason.DROPOFF_STOP if state is CellState.DROPOFF else Reason.OBSTACLE_STOP
@@ -875,6 +992,8 @@ class SafetyLayer:
             if u > cap:
                 reasons.append(Reason.APPROACH)
                 caps.append(cap)
+        if min(caps) <= beat_cap:
+            return None
         unseen, blind = self.unknown_clearance(grid, v_mm_s, omega_rad_s)
         creep = s.unknown_creep_speed_mm_s
         if unseen <= s.stop_distance_mm:
@@ -894,9 +1013,14 @@ class SafetyLayer:
         if blind <= s.stop_distance_mm and u > creep:
             reasons.append(Reason.UNKNOWN_CREEP)
             caps.append(creep)
+        if min(caps) <= beat_cap:
+            return None
+        unknown = self._sweep_unknown(grid, v_mm_s, omega_rad_s, clearance)
         if unknown > s.unknown_max_fraction and u > s.unknown_speed_mm_s:
             reasons.append(Reason.UNKNOWN_AHEAD)
             caps.append(s.unknown_speed_mm_s)
+        if min(caps) <= beat_cap:
+            return None
         scale = min(1.0, min(caps) / u)
         return SafetyDecision(
             v_mm_s * scale, omega_rad_s * scale, scale, clearance, _unique(reasons)

@@ -362,3 +362,92 @@ def test_softening_keeps_every_rule_on_random_maps():
             again = plain.check(g, d.v_mm_s, d.omega_rad_s, perception_age_s=0.1)
             assert again.scale > 0.999, (v, w, d, again)
     assert softened >= 5
+
+
+def _drive_straight_request(layer, world_xy, pose, seconds=4.0, v_mm_s=200.0, dt_s=0.05):
+    """Hold a straight forward request for ``seconds``, re-checked every ``dt_s`` against exact
+    world points (the chair's pose integrated on the allowed twists); returns the poses, the
+    decisions and the least gap (mm) between the footprint without margin and any point."""
+    cfg = layer.settings
+    g = OccupancyGrid(GridSettings(resolution_mm=25.0))
+    g.states[:] = CellState.FREE
+    x, y, th = pose
+    poses, decisions, least = [], [], math.inf
+    for _ in range(round(seconds / dt_s)):
+        c, s = math.cos(th), math.sin(th)
+        dx, dy = world_xy[:, 0] - x, world_xy[:, 1] - y
+        rx, ry = c * dx + s * dy, -s * dx + c * dy
+        ex = np.maximum(np.maximum(-cfg.footprint_rear_mm - rx, rx - cfg.footprint_front_mm), 0)
+        ey = np.maximum(np.abs(ry) - 0.5 * cfg.footprint_width_mm, 0.0)
+        least = min(least, float(np.hypot(ex, ey).min()))
+        xy = np.column_stack([rx, ry])
+        evidence = (xy, np.zeros(len(xy)), np.zeros(len(xy), dtype=bool))
+        d = layer.check(g, v_mm_s, 0.0, perception_age_s=0.1, evidence=evidence)
+        decisions.append(d)
+        th_new = th + d.omega_rad_s * dt_s
+        if d.omega_rad_s == 0.0:
+            x, y = x + d.v_mm_s * dt_s * c, y + d.v_mm_s * dt_s * s
+        else:
+            r = d.v_mm_s / d.omega_rad_s
+            x, y = x + r * (math.sin(th_new) - s), y - r * (math.cos(th_new) - c)
+        th = th_new
+        poses.append((x, y, th))
+    return np.array(poses), decisions, least
+
+
+def test_softening_checks_only_what_can_win_and_chooses_as_checking_all_would():
+    """The lazy candidate sweep (best bound first, rules stopped once a candidate cannot win)
+    picks the twist that checking every candidate in turn picks, on random maps and turns."""
+    rng = np.random.default_rng(5)
+    layer = SafetyLayer(dataclasses.replace(S, soften=True))
+    plain = SafetyLayer(S)
+    r = layer.r_max_mm
+    compared = 0
+    for _ in range(20):
+        g = free_grid()
+        xs, ys = g.cell_centers()
+        for _ in range(3):
+            x0, y0 = float(rng.uniform(-1200, 900)), float(rng.uniform(-900, 600))
+            if abs(x0 + 200) < 500 and abs(y0 + 150) < 450:
+                continue  # not under the chair
+            box = np.ix_((xs > x0) & (xs < x0 + 300), (ys > y0) & (ys < y0 + 300))
+            g.states[box] = CellState.OBSTACLE if rng.random() < 0.7 else CellState.UNKNOWN
+        for _ in range(3):
+            v, w = float(rng.uniform(-100, 250)), float(rng.choice([-1, 1]) * rng.uniform(0.1, 0.6))
+            asked = plain.check(g, v, w, perception_age_s=0.1)
+            if asked.scale == 1.0:
+                continue
+            n = math.hypot(v, w * r)
+            ux, uy = v / n, w * r / n
+
+            def score(d, ux=ux, uy=uy):
+                p = d.v_mm_s * ux + d.omega_rad_s * r * uy
+                return p - math.hypot(d.v_mm_s - p * ux, d.omega_rad_s * r - p * uy)
+
+            best, best_score = asked, score(asked)
+            for cv, cw in layer.soften_candidates(v, w):  # every candidate, in list order
+                d = plain.check(g, cv, cw, perception_age_s=0.1)
+                if d.scale > 0.0 and score(d) > best_score + 1e-6:
+                    best, best_score = d, score(d)
+            d = layer.check(g, v, w, perception_age_s=0.1)
+            assert (d.v_mm_s, d.omega_rad_s) == pytest.approx((best.v_mm_s, best.omega_rad_s))
+            compared += 1
+    assert compared >= 20
+
+
+def test_a_softened_straight_request_is_not_steered_into_a_wall():
+    """A wall 60 mm beside the chair's left side and a box ahead-right that refuses straight
+    on: the arcs left (towards the wall) are checked like any request, so the chair may curve
+    towards the wall only as far as the rules allow — it never comes nearer than its side
+    margin — and it ends stopped before the box, not pressed into either."""
+    cfg = dataclasses.replace(SafetySettings(), soften_side_shift_mm=60.0)
+    half = 0.5 * cfg.footprint_width_mm
+    wx = np.arange(-1000.0, 2000.0, 20.0)
+    wall_xy = np.column_stack([wx, np.full(wx.size, half + 60.0)])
+    bx, by = np.meshgrid(np.arange(500.0, 801.0, 20.0), np.arange(-600.0, half - 150.0, 20.0))
+    world = np.r_[wall_xy, np.column_stack([bx.ravel(), by.ravel()])]
+    layer = SafetyLayer(cfg)
+    poses, decisions, least = _drive_straight_request(layer, world, (0.0, 0.0, 0.0), 5.0, dt_s=0.1)
+    assert least >= cfg.side_margin_mm - 1.0
+    assert decisions[-1].stopped or decisions[-1].v_mm_s < 25.0
+    assert poses[-1, 0] + cfg.footprint_front_mm < 500.0  # short of the box
