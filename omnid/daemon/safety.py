@@ -45,7 +45,8 @@ or the margin be reached. A move whose first contact is a drop-off is never an e
 (``dropoff_stop`` stays a refusal). Reason ``escape_creep``.
 
 The most restrictive limit wins; the rider's v and ω are scaled by one factor, so the chair keeps
-the path the rider asked for — except that, with ``soften`` on (the default), a limited turn is softened: a small set
+the path the rider asked for — except that, with ``soften`` on (the default), a limited turn (or a straight
+request limited by a one-sided intrusion, ``soften_side_shift_mm``) is softened: a small set
 of nearby twists (:meth:`SafetyLayer.soften_candidates`: gentler turns, less or no travel, a turn
 in place with a forward component) is checked by all the same rules, and the allowed twist with
 the most progress along the asked one, less its deviation from it, runs instead (reason
@@ -159,12 +160,11 @@ class SafetySettings(Settings):
     # (the tail swings to a jamb) while the straight line is clear (docs/benchmarks.md)
     soften: bool = True
     soften_forward_mm_s: float = setting(100.0, 0.0, 300.0)
-    # a limited straight forward request may be softened into a forward arc that shifts the
-    # chair sideways by at most this over the slow zone's travel (a door-passing assist): arcs of
-    # radius slow_distance²/(2·shift) and that over √2 and 2 (s²/2R over s = slow, slow/2^¼,
-    # slow/√2), each way. 60 would be the gap beside this chair in an 820 mm door; 0 (the
-    # default until the suite, the demo story and the replays are measured with it —
-    # docs/benchmarks.md): straight requests are only scaled
+    # a limited straight forward request, when what limits it within the slow zone is a
+    # one-sided intrusion (a door jamb), may be softened into forward arcs away from it: radius
+    # slow_distance²/(2·shift) and that over √2 and 2 (a sideways shift of this over s = slow,
+    # slow/2^¼, slow/√2 of travel: s²/2R), for intrusions the sharpest shifts clear. 60: the gap
+    # beside this chair in an 820 mm door (docs/daemon.md); 0: straight requests only scaled
     soften_side_shift_mm: float = setting(60.0, 0.0, 300.0)
 
     def __post_init__(self) -> None:
