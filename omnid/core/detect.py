@@ -120,6 +120,10 @@ _EMPTY_SHAPE = (0, 3)
 _ALLOWED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 
 
+#: The defaults, built (and range-checked) once: detect_dots runs per frame.
+_DEFAULT_PARAMS = DetectionParams()
+
+
 def _empty() -> NDArray[np.float64]:
     return np.zeros(_EMPTY_SHAPE, dtype=np.float64)
 
@@ -1265,7 +1269,7 @@ def detect_dots(
     Raises :class:`~omnid.errors.InputError` for arrays that are not images of one shape and
     dtype, and ``ValueError`` for an unknown method. No dots (or an empty image) → (0, 3).
     """
-    p = params or DetectionParams()
+    p = params or _DEFAULT_PARAMS
     m, b = _check_pair(mask, base)
     if m.shape[0] == 0 or m.shape[1] == 0:
         return _empty()

@@ -377,6 +377,7 @@ class BeamTracks:
     floor_mm: NDArray[np.float64]  # (K, 3)
     floor_x_mm: NDArray[np.float64]  # (K,) floor_mm[:, 0], contiguous (the look-up's hot loop)
     floor_y_mm: NDArray[np.float64]  # (K,) floor_mm[:, 1]
+    slope2: NDArray[np.float64]  # (K,) |s|² of each beam (for slope_sigma, per triple)
     # the floor points binned in square cells of ``_CELL_MM`` (bands of Y, then X), sorted by
     # (band, X): a disk's neighbours are a few short runs of this order (_beams_near)
     cell_order: NDArray[np.intp]  # (K,) beams sorted by (band, X)
@@ -421,6 +422,7 @@ class BeamTracks:
             np.asarray(laser.floor_mm),
             np.ascontiguousarray(fl[:, 0]),
             np.ascontiguousarray(fl[:, 1]),
+            np.sum(s**2, axis=1),
             cell_order,
             cell_start,
             x_rank,
@@ -434,7 +436,7 @@ class BeamTracks:
         H = self.floor_depth_mm
         oz = self.source_mm[2]
         so = self.source_sigma_mm
-        s2 = np.sum(self.slope[beam] ** 2, axis=1)
+        s2 = self.slope2[beam]
         lever_o = (u * H - 1.0) / (H - oz)
         lever_p = (1.0 - oz * u) / (H - oz)
         var = lever_o**2 * (0.5 * (so[0] ** 2 + so[1] ** 2) + s2 * so[2] ** 2)
@@ -651,37 +653,45 @@ def _dominant_triples(
     triples.
     """
     t_all = len(w)
-    # kept in order of decreasing weight: a stable sort of the nodes alone then lists each
-    # node's triples heaviest first (ties by index, as a sort by (node, −weight) would)
-    open_ = np.argsort(-w, kind="stable").astype(np.intp)
+    if t_all == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    # Triples heaviest first (ties by index); their node entries sorted by node once (stable:
+    # each node's triples stay heaviest first). Every round then only drops the entries of
+    # the triples gone: what is left is still in that order, so no round sorts again.
+    perm = np.argsort(-w, kind="stable").astype(np.intp)
+    wp, ndp = w[perm], nodes[perm]
+    flat = ndp.ravel()  # (3T,) entry e belongs to triple e // 3 (in perm's order)
+    entry = np.argsort(flat, kind="stable").astype(np.intp)
+    e_node, e_trip = flat[entry], entry // 3
+    e_w = wp[e_trip]
+    alive = np.ones(t_all, dtype=bool)
+    s_e = np.empty(3 * t_all)  # per entry: the largest other weight at its node
     sure: list[NDArray[np.intp]] = []
-    n_nodes = int(nodes.max()) + 1 if t_all else 0
-    while len(open_):
-        nd = nodes[open_]
-        ww = w[open_]
-        flat = nd.ravel()  # (3T,) entry e belongs to triple e // 3
-        we = np.repeat(ww, 3)
-        order = np.argsort(flat, kind="stable")
-        fs = flat[order]
+    n_nodes = int(nodes.max()) + 1
+    while True:
+        keep = alive[e_trip]
+        fs, we, ent = e_node[keep], e_w[keep], entry[keep]
         first = np.concatenate([[True], fs[1:] != fs[:-1]])
         starts = np.flatnonzero(first)
         group = np.cumsum(first) - 1
-        top1 = we[order][starts]
+        top1 = we[starts]
         sizes = np.diff(np.concatenate([starts, [len(fs)]]))
-        top2 = np.where(sizes > 1, we[order][np.minimum(starts + 1, len(fs) - 1)], 0.0)
-        other = np.where(first, top2[group], top1[group])  # largest other weight at the node
-        s_e = np.empty(len(fs))
-        s_e[order] = other
-        s_t = s_e.reshape(-1, 3).sum(axis=1)
-        dom = ww > s_t
+        top2 = np.where(sizes > 1, we[np.minimum(starts + 1, len(fs) - 1)], 0.0)
+        s_e[ent] = np.where(first, top2[group], top1[group])
+        live = np.flatnonzero(alive)
+        s_t = s_e.reshape(-1, 3)[live].sum(axis=1)
+        dom = wp[live] > s_t
         if not dom.any():
             break
-        sure.append(np.sort(open_[dom]))
+        taken = live[dom]
+        sure.append(np.sort(perm[taken]))
         used = np.zeros(n_nodes, dtype=bool)
-        used[nd[dom].ravel()] = True
-        open_ = open_[~used[nd].any(axis=1)]
-    taken = np.concatenate(sure) if sure else np.zeros(0, np.intp)
-    return taken.astype(np.intp), np.sort(open_)
+        used[ndp[taken].ravel()] = True
+        alive[live[used[ndp[live]].any(axis=1)]] = False
+        if not alive.any():
+            break
+    chosen = np.concatenate(sure) if sure else np.zeros(0, np.intp)
+    return chosen.astype(np.intp), np.sort(perm[alive])
 
 
 def _max_weight_packing(

@@ -153,6 +153,10 @@ class Perception:
         return len(self.cloud) / n if n else 0.0
 
 
+#: The defaults, built (and range-checked) once: perceive runs per frame.
+_DEFAULT_SETTINGS = PerceptionSettings()
+
+
 def perceive(
     capture: StereoCapture,
     calib: Calibration,
@@ -187,7 +191,7 @@ def perceive_detailed(
     from omnid.core.classify import classify
     from omnid.core.triangulate import triangulate, triangulate_on_beams
 
-    s = settings or PerceptionSettings()
+    s = settings or _DEFAULT_SETTINGS
     if method not in ("thesis", "best"):
         raise ValueError(f"unknown method {method!r} (known: thesis, best)")
     expected = tuple(calib.rig.cam1.image_shape)
