@@ -395,7 +395,8 @@ def _neighbour_light(
     gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
     gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
     light = st.mass[j, None, None] * gjr[:, :, None] * gjc[:, None, :]
-    np.add.at(out, slot[i], light)
+    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    out[slot[i[starts]]] = np.add.reduceat(light, starts, axis=0)
     return out
 
 
