@@ -45,7 +45,7 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   a phantom of one capture's wrong pairing is doubt, not a wall.
 - Exact obstacle evidence: besides the cells, the map keeps the obstacle dots themselves (anchor
   frame and height, one per ``point_spacing_mm``, at most ``obstacle_points_max``; per cell those
-  of the latest capture that saw it) for as long as their cell stays OBSTACLE. :meth:`FreeSpaceMap.blocking_evidence` gives the safety layer those points
+  of the captures that saw it within ``point_memory_travel_mm`` of travel) for as long as their cell stays OBSTACLE. :meth:`FreeSpaceMap.blocking_evidence` gives the safety layer those points
   where they exist and the cell centres (with their half-diagonal) elsewhere, transformed
   exactly into the robot frame — no cell quantisation and no resampling error where the laser
   saw the thing (a doorway's jambs, a wall beside the chair).
@@ -291,9 +291,7 @@ class FreeSpaceMap:
         x, y, th = self._pose
         c, sn = math.cos(th), math.sin(th)
         dx, dy = self._points[:, 0] - x, self._points[:, 1] - y
-        self._points = np.column_stack(
-            [c * dx + sn * dy, -sn * dx + c * dy, self._points[:, 2:]]
-        )
+        self._points = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy, self._points[:, 2:]])
         self._pose = (0.0, 0.0, 0.0)
         self._occupied = None
         # The cells were resampled (nearest neighbour, up to half a cell off), the points moved
@@ -545,7 +543,7 @@ class FreeSpaceMap:
             fresh = np.zeros(a.states.shape, dtype=bool)
             fresh[ni[nin], nj[nin]] = True
             oi, oj, oin = a.cell_index(self._points[:, :2])
-            recent = self.travel_mm - self._points[:, 3] <= self.settings.point_memory_travel_mm
+            recent = self.travel_mm - self._points[:, 3] < self.settings.point_memory_travel_mm
             keep = ~(oin & fresh[oi, oj]) | recent
             self._points = self._points[keep]
         stamp = np.full((len(xyh_anchor), 1), self.travel_mm)

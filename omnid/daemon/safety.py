@@ -45,7 +45,8 @@ or the margin be reached. A move whose first contact is a drop-off is never an e
 (``dropoff_stop`` stays a refusal). Reason ``escape_creep``.
 
 The most restrictive limit wins; the rider's v and ω are scaled by one factor, so the chair keeps
-the path the rider asked for — except that, with ``soften`` on (the default), a limited turn is softened: a small set
+the path the rider asked for — except that, with ``soften`` on (the default), a limited turn (or a straight
+request limited by a one-sided intrusion, ``soften_side_shift_mm``) is softened: a small set
 of nearby twists (:meth:`SafetyLayer.soften_candidates`: gentler turns, less or no travel, a turn
 in place with a forward component) is checked by all the same rules, and the allowed twist with
 the most progress along the asked one, less its deviation from it, runs instead (reason
@@ -159,13 +160,12 @@ class SafetySettings(Settings):
     # (the tail swings to a jamb) while the straight line is clear (docs/benchmarks.md)
     soften: bool = True
     soften_forward_mm_s: float = setting(100.0, 0.0, 300.0)
-    # a limited straight forward request may be softened into a forward arc that shifts the
-    # chair sideways by at most this over the slow zone's travel (a door-passing assist): arcs of
-    # radius slow_distance²/(2·shift) and that over √2 and 2 (s²/2R over s = slow, slow/2^¼,
-    # slow/√2), each way. 60 would be the gap beside this chair in an 820 mm door; 0 (the
-    # default until the suite, the demo story and the replays are measured with it —
-    # docs/benchmarks.md): straight requests are only scaled
-    soften_side_shift_mm: float = setting(0.0, 0.0, 300.0)
+    # a limited straight forward request, when what limits it within the slow zone is a
+    # one-sided intrusion (a door jamb), may be softened into forward arcs away from it: radius
+    # slow_distance²/(2·shift) and that over √2 and 2 (a sideways shift of this over s = slow,
+    # slow/2^¼, slow/√2 of travel: s²/2R), for intrusions the sharpest shifts clear. 60: the gap
+    # beside this chair in an 820 mm door (docs/daemon.md); 0: straight requests only scaled
+    soften_side_shift_mm: float = setting(60.0, 0.0, 300.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -345,6 +345,10 @@ class SafetyLayer:
         if shift > 0.0:
             radii = (s.slow_distance_mm**2 / (2.0 * shift) / k for k in (1.0, math.sqrt(2.0), 2.0))
             self._arc_radii_mm = tuple(r for r in radii if r > self.r_max_mm)
+        # the sideways shift the sharpest of them makes over the slow zone's travel
+        self._arc_shift_mm = (
+            s.slow_distance_mm**2 / (2.0 * min(self._arc_radii_mm)) if self._arc_radii_mm else 0.0
+        )
         self._pts_cache: tuple[float, NDArray[np.float64]] | None = None
         self._map_key: object = None  # the map content the caches below belong to
         # blocking evidence of the current map: x, y, grow (mm), drop-off
@@ -354,6 +358,8 @@ class SafetyLayer:
         ) = None
         self._sweeps: dict[tuple[float, float], tuple[float, CellState | None]] = {}
         self._fractions: dict[tuple[float, float], float] = {}
+        self._contact_ys: dict[tuple[float, float], float] = {}
+        self._contact_y_mm = 0.0  # of the last uncached sweep
         self._unknown: dict[tuple[float, float], tuple[float, float]] = {}
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
@@ -446,6 +452,7 @@ class SafetyLayer:
         bx, by, grow, bdrop = self._blocking
         sb = self._contact(bx, by, grow, v_mm_s, omega_rad_s, u)
         clearance, state = math.inf, None
+        self._contact_y_mm = 0.0
         if sb.size:
             k = int(np.argmin(sb))
             if math.isfinite(sb[k]):
@@ -453,12 +460,42 @@ class SafetyLayer:
                 h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
                 tie = sb <= clearance + h
                 state = CellState.DROPOFF if np.any(bdrop[tie]) else CellState.OBSTACLE
+                if omega_rad_s == 0.0 and v_mm_s > 0.0:
+                    self._contact_y_mm = self._side_intrusion(by, grow, sb)
         result = (clearance, state)
         if len(self._sweeps) >= 256:
             self._sweeps.clear()
+        self._contact_ys.pop((v_mm_s, omega_rad_s), None)
         if self._map_key is not None:
             self._sweeps[(v_mm_s, omega_rad_s)] = result
+            self._contact_ys[(v_mm_s, omega_rad_s)] = self._contact_y_mm
         return result
+
+    def _side_intrusion(
+        self, by: NDArray[np.float64], grow: NDArray[np.float64], s_mm: NDArray[np.float64]
+    ) -> float:
+        """What limits a straight forward move within the slow zone, as a side intrusion: the
+        sideways shift (mm) that would clear every blocking point the straight sweep meets
+        within ``slow_distance_mm`` — positive if all lie left (shift right), negative if all
+        lie right, 0 if they lie on both sides (a door jamb each side, or something across the
+        path: no one-sided shift clears it)."""
+        near = s_mm <= self.settings.slow_distance_mm
+        y, g = by[near], grow[near]
+        if y.size == 0 or (np.any(y > 0.0) and np.any(y <= 0.0)):
+            return 0.0
+        if y[0] > 0.0:
+            return float(np.max(self._y1 + g - y))
+        return -float(np.max(self._y1 + g + y))
+
+    def _contact_side(self, v_mm_s: float, omega_rad_s: float) -> float:
+        """For a straight forward request: +1 if what limits it within the slow zone lies all
+        left of the path and a sideways shift the sharpest candidate arc makes over the slow
+        zone's travel (``_arc_shift_mm``) clears it, −1 likewise right, else 0 (after its
+        sweep: :meth:`_side_intrusion`)."""
+        y = self._contact_ys.get((v_mm_s, omega_rad_s), self._contact_y_mm)
+        if not self._arc_radii_mm or abs(y) > self._arc_shift_mm:
+            return 0.0
+        return float(np.sign(y))
 
     def _sweep_unknown(
         self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float, clearance_mm: float
@@ -492,6 +529,7 @@ class SafetyLayer:
         self._map_key = map_key
         self._sweeps.clear()
         self._fractions.clear()
+        self._contact_ys.clear()
         self._unknown.clear()
         if evidence is None:
             xs, ys = self._centres(grid)
@@ -807,16 +845,20 @@ class SafetyLayer:
         if not (math.isfinite(v_mm_s) and math.isfinite(omega_rad_s)):
             return self._report(SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.FAULT,)), now_s)
         decision = self._limit(grid, v_mm_s, omega_rad_s, perception_age_s, evidence, evidence_key)
-        # a straight request only when refused: while it may still move, the arcs' caps (not
-        # where they lead) would choose among them
-        softenable = omega_rad_s != 0.0 or (decision.stopped and v_mm_s > 0.0)
+        # a straight forward request when what limits it within the slow zone is a side
+        # intrusion a small shift clears (a door jamb); the arcs turn away from it
+        softenable = omega_rad_s != 0.0 or (
+            v_mm_s > 0.0 and self._arc_radii_mm and self._contact_side(v_mm_s, 0.0) != 0.0
+        )
         if decision.scale < 1.0 and softenable and self.settings.soften:
             decision = self.soften(
                 grid, v_mm_s, omega_rad_s, decision, perception_age_s, evidence, evidence_key
             )
         return self._report(decision, now_s)
 
-    def soften_candidates(self, v_mm_s: float, omega_rad_s: float) -> list[tuple[float, float]]:
+    def soften_candidates(
+        self, v_mm_s: float, omega_rad_s: float, away_from: float = 0.0
+    ) -> list[tuple[float, float]]:
         """The twists (mm/s, rad/s) a limited request may be softened into.
 
         A turn (v, ω ≠ 0): the same turn direction, never a reversed travel direction, never
@@ -829,8 +871,9 @@ class SafetyLayer:
         A straight forward request (v > 0, ω = 0): forward arcs each way whose radii shift the
         chair sideways by ``soften_side_shift_mm`` over the slow zone's travel (``_arc_radii_mm``),
         their fastest point no faster than asked (v·R/(R + r), r the farthest corner's radius) —
-        the heading correction a rider a few degrees off a door's line needs. Reverse straight
-        requests have none."""
+        the heading correction a rider a few degrees off a door's line needs; with
+        ``away_from`` (the side, +1 left or −1 right, of what refuses the straight line) only
+        those turning away from it. Reverse straight requests have none."""
         w = omega_rad_s
         if w == 0.0:
             if v_mm_s <= 0.0:
@@ -839,7 +882,7 @@ class SafetyLayer:
             out = []
             for radius in self._arc_radii_mm:
                 v = v_mm_s * radius / (radius + r)
-                out += [(v, v / radius), (v, -v / radius)]
+                out += [(v, w) for w in (v / radius, -v / radius) if w * away_from <= 0.0]
             return out
         out = [(v_mm_s, 0.5 * w), (v_mm_s, 0.25 * w)]
         if v_mm_s != 0.0:
@@ -885,7 +928,9 @@ class SafetyLayer:
             return p - math.hypot(ax - p * ux, ay - p * uy)
 
         best, best_score = limited, score(limited.v_mm_s, limited.omega_rad_s)
-        bounded = [(score(v, w), v, w) for v, w in self.soften_candidates(v_mm_s, omega_rad_s)]
+        side = self._contact_side(v_mm_s, 0.0) if omega_rad_s == 0.0 else 0.0
+        candidates = self.soften_candidates(v_mm_s, omega_rad_s, side)
+        bounded = [(score(v, w), v, w) for v, w in candidates]
         bounded.sort(key=lambda c: -c[0])  # stable: list order among equal bounds
         for bound, v, w in bounded:
             if bound <= best_score + 1e-6:

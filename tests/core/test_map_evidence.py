@@ -166,3 +166,32 @@ def test_a_ray_through_a_kept_phantom_carves_it_a_real_box_stays():
         m.update(capture(World((box,)), seed=seed), MOUNT.x_offset_mm)
     assert m.state_at([[1310.0, 0.0]])[0] == CellState.OBSTACLE
     assert len(m.obstacle_points) > 5
+
+
+def test_a_cell_seen_again_keeps_its_recent_points_not_only_the_latest_captures():
+    # Dots on one obstacle cell: two captures (an obstacle needs two) at its near side, the
+    # next 40 mm farther back (the dots fall anywhere on a face). The near edge must stay where it was
+    # seen until the chair has travelled point_memory_travel_mm; then the newest view wins.
+    def face(x_mm: float) -> PointCloud:
+        return points([[x_mm, y, H - 300.0] for y in (-10.0, 0.0, 10.0)], [PointClass.OBSTACLE] * 3)
+
+    def nearest_mm(m: FreeSpaceMap) -> float:
+        xy, grow, _ = m.blocking_evidence()
+        return float(xy[grow == 0.0, 0].min())
+
+    res = FreeSpaceSettings().grid.resolution_mm
+    near_x = 20 * res + 5.0
+    far_x = near_x + res - 10.0
+    for memory_mm, after_two in ((400.0, near_x), (0.0, far_x)):
+        m = FreeSpaceMap(FreeSpaceSettings(point_memory_travel_mm=memory_mm))
+        i, j, _ = m._anchor.cell_index(np.array([[near_x, 0.0], [far_x, 0.0]]))
+        assert i[0] == i[1] and j[0] == j[1]  # one cell
+        m.update(face(near_x), 0.0)
+        m.update(face(near_x), 0.0)
+        m.update(face(far_x), 0.0)
+        assert abs(nearest_mm(m) - after_two) < 1e-6, memory_mm
+    # beyond the memory's travel the latest capture replaces what the cell had
+    m.move(2 * res, 0.0, 0.0)
+    m.move(400.0, 0.0, 0.0)
+    m.update(face(far_x - 400.0 - 2 * res), 0.0)
+    assert abs(nearest_mm(m) - (far_x - 400.0 - 2 * res)) < 1e-6
