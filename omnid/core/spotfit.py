@@ -182,8 +182,9 @@ def fit_spots(
     ``rows``, ``cols``: each dot's peak pixel; ``start``: optional sub-pixel starting centres;
     ``sigma_px``: the starting spot sigma (it also sets the window); ``peak``: starting peak
     values, gray levels; ``saturated``: pixels whose value is only a lower bound (or None):
-    each is replaced by the larger of its value and the current model (the censored-data
-    update), so a clipped top carries the information it has and no more. Returns, per dot,
+    each is replaced by the larger of its value and the current model there — the dot's,
+    its plane's and its neighbours' light: the censored-data update —, so a clipped top carries
+    the information it has and no more. Returns, per dot,
     the centre (row, col) px, the fitted peak (gray levels of the continuous profile,
     A / 2πσ²) and sigma (px).
 
