@@ -42,7 +42,7 @@ TAPER_PER_SIGMA = 2.0
 #: Smallest and largest window half-size, px.
 MIN_HALF_PX, MAX_HALF_PX = 2, 10
 #: Gauss–Newton passes over all dots, updated in turn (see :func:`fit_spots`) ...
-ITERATIONS = 3
+ITERATIONS = 4
 #: ... and for small spots, updated all at once (their neighbours overlap them little).
 JACOBI_ITERATIONS = 2
 #: Spots larger than this (sigma, px) overlap their neighbours so much that the dots are
@@ -182,8 +182,9 @@ def fit_spots(
     ``rows``, ``cols``: each dot's peak pixel; ``start``: optional sub-pixel starting centres;
     ``sigma_px``: the starting spot sigma (it also sets the window); ``peak``: starting peak
     values, gray levels; ``saturated``: pixels whose value is only a lower bound (or None):
-    each is replaced by the larger of its value and the current model (the censored-data
-    update), so a clipped top carries the information it has and no more. Returns, per dot,
+    each is replaced by the larger of its value and the current model there — the dot's,
+    its plane's and its neighbours' light: the censored-data update —, so a clipped top carries
+    the information it has and no more. Returns, per dot,
     the centre (row, col) px, the fitted peak (gray levels of the continuous profile,
     A / 2πσ²) and sigma (px).
 
@@ -282,15 +283,21 @@ def _update(
     taper = -0.5 / (TAPER_PER_SIGMA * s[:, None]) ** 2
     wr, wc = np.exp(ur * ur * taper), np.exp(uc * uc * taper)
     data = st.win[k]
+    local = np.full(len(st.cr), -1, np.intp)
+    local[k] = np.arange(n)
     if st.sat is not None:
         sat = st.sat[k]
         hit = np.flatnonzero(sat.any(axis=(1, 2)))
         if len(hit):
-            own = mass[hit, None, None] * gr[hit, :, None] * gc[hit, None, :]
-            own += b0[hit, None, None] + br[hit, None, None] * ur[hit, :, None]
-            own += bc[hit, None, None] * uc[hit, None, :]
+            # A clipped pixel says "at least its value" about the whole model there — the
+            # dot's own light, its plane and its neighbours' light — not about the dot alone.
+            model = mass[hit, None, None] * gr[hit, :, None] * gc[hit, None, :]
+            model += b0[hit, None, None] + br[hit, None, None] * ur[hit, :, None]
+            model += bc[hit, None, None] * uc[hit, None, :]
+            if len(pair_i):
+                model += _neighbour_light(local[pair_i], pair_j, hit, win_r, win_c, st)
             data = data.copy()
-            data[hit] = np.where(sat[hit], np.maximum(data[hit], own), data[hit])
+            data[hit] = np.where(sat[hit], np.maximum(data[hit], model), data[hit])
     # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}; every basis is a sum of row ⊗ column
     # products of them, so every weighted window sum is a product of 1-D sums or of
     # weighted row vectors · data · weighted column vectors.
@@ -301,8 +308,6 @@ def _update(
     fcw = np.swapaxes(fc * wc[:, None, :], 1, 2)  # (n, size, 5)
     q = frw @ data @ fcw  # (n, 5, 5)
     if len(pair_i):
-        local = np.full(len(st.cr), -1, np.intp)
-        local[k] = np.arange(n)
         q -= _neighbour_sums(local[pair_i], pair_j, frw, fcw, win_r, win_c, st, n)
     pr = frw @ np.swapaxes(fr, 1, 2)  # (n, 5, 5) weighted 1-D sums of products, rows
     pc = np.swapaxes(fcw, 1, 2) @ np.swapaxes(fc, 1, 2)  # columns
@@ -366,6 +371,34 @@ def _gauss_newton_step(
         out.append((m22 * grad[:, gi] - m12 * grad[:, gj]) / det2)
         out.append((m11 * grad[:, gj] - m12 * grad[:, gi]) / det2)
     return tuple(out)
+
+
+def _neighbour_light(
+    i: NDArray[np.intp],
+    j: NDArray[np.intp],
+    hit: NDArray[np.intp],
+    win_r: NDArray[np.float64],
+    win_c: NDArray[np.float64],
+    st: _FitState,
+) -> NDArray[np.float64]:
+    """(len(hit), size, size): the current models of the neighbours j (indices into ``st``)
+    rendered in the windows of the dots ``hit`` (indices into ``win_r``, ``win_c``, as the
+    pairs' i; pairs sorted by i)."""
+    size = win_r.shape[1]
+    out = np.zeros((len(hit), size, size))
+    slot = np.full(len(win_r), -1, np.intp)
+    slot[hit] = np.arange(len(hit))
+    keep = slot[i] >= 0
+    if not keep.any():
+        return out
+    i, j = i[keep], j[keep]
+    sj = st.s[j, None]
+    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
+    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    light = st.mass[j, None, None] * gjr[:, :, None] * gjc[:, None, :]
+    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    out[slot[i[starts]]] = np.add.reduceat(light, starts, axis=0)
+    return out
 
 
 def _neighbour_sums(
