@@ -400,6 +400,53 @@ def dense_room() -> tuple[tuple[Box, ...], tuple[DropOff, ...]]:
     return boxes, (ROOM_DROP,)
 
 
+# -- the soak's setup (tests/scenarios/test_soak.py, tools/bench_soften.py) ------------------
+
+#: The soak's safety changes: escape moves at 40 mm/s (off by default: with them the chair creeps
+#: out of the pocket between the first three boxes), crossing the unseen at creep speed (the
+#: blind random rider strands the chair under ``refuse``), and the staleness limit of the
+#: stationary capture it runs on (a cloud every 0.5 s).
+SOAK_SAFETY: dict[str, Any] = {
+    "escape_speed_mm_s": 40.0,
+    "unknown_policy": "creep",
+    "perception_timeout_s": 1.5,
+}
+
+
+def soak_course() -> Course:
+    """The cluttered room of the soak: :data:`ROOM_BOXES` and :data:`ROOM_DROP` in a walled room
+    8 m long and 4 m wide, the chair 1 m from its back wall."""
+    return _room(ROOM_BOXES, (ROOM_DROP,), x_range=(-1000.0, 7000.0), name="soak")
+
+
+def soak_core(safety_changes: dict[str, Any] | None = None) -> Any:
+    """The daemon's ``ControlCore`` as the soak runs it: the default configuration with the
+    joystick, :data:`SOAK_SAFETY` (then ``safety_changes``), and the thesis' stationary capture
+    instead of the shipped stream (36 000 stream clouds in the half hour do not fit CI)."""
+    from omnid.daemon.core import ControlCore
+    from omnid.sim.scenario import make_core as base
+
+    cfg = base(joystick=True).config
+    safety = dataclasses.replace(cfg.safety, **{**SOAK_SAFETY, **(safety_changes or {})})
+    perception = dataclasses.replace(cfg.perception, capture="stationary")
+    return ControlCore(dataclasses.replace(cfg, safety=safety, perception=perception))
+
+
+def soak_settings() -> Any:
+    """The soak's simulator settings: truth perception (the default physical laser's dots with
+    their true classes), the daemon's configured rates, nothing stored per frame."""
+    from omnid.sim.simulator import SimSettings
+
+    return SimSettings(
+        perception="truth",
+        physics_dt_s=0.02,
+        tilt_period_s=0.02,
+        record_period_s=0.2,
+        record_seen=False,
+        stop_on_contact=False,
+    )
+
+
 def clutter(kind: RiderKind, seed: int, duration_s: float = 600.0) -> Trial:
     """Random riding for ``duration_s`` in a dense room (:func:`dense_room`)."""
     boxes, drops = dense_room()

@@ -45,37 +45,16 @@ the clocks in time.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from pathlib import Path
 
 import numpy as np
-from scenario_helpers import make_core, room
 
-from omnid.daemon.core import ControlCore
 from omnid.daemon.motion import StallDetector
 from omnid.daemon.safety import Reason
 from omnid.sim.rider import random_ride
-from omnid.sim.simulator import SimSettings, Simulator
-from omnid.sim.suite import ROOM_BOXES, ROOM_DROP
-
-ESCAPE_SPEED_MM_S = 40.0
-
-
-def cluttered_room():
-    return room(ROOM_BOXES, (ROOM_DROP,), length_mm=8000.0)
-
-
-def soak_settings() -> SimSettings:
-    """Configured daemon rates (control and perception periods from the core's config)."""
-    return SimSettings(
-        perception="truth",
-        physics_dt_s=0.02,
-        tilt_period_s=0.02,
-        record_period_s=0.2,
-        record_seen=False,
-        stop_on_contact=False,
-    )
+from omnid.sim.simulator import Simulator
+from omnid.sim.suite import soak_core, soak_course, soak_settings
 
 
 def _rss_mb() -> float:
@@ -116,23 +95,13 @@ def test_soak_random_riding_at_the_configured_rates(request):
         if not rss or now_s >= rss[-1][0] + sample_s:
             rss.append((now_s, _rss_mb()))
 
-    core = make_core(joystick=True)
-    # escape moves on (off by default, docs/daemon.md): without them the chair is stranded in
-    # a pocket after 9 minutes
-    cfg = core.config  # type: ignore[attr-defined]
-    # The thesis' stationary capture (a cloud every 0.5 s, staleness 1.5 s), not the shipped
+    # escape moves on and the unseen crossed at creep speed (omnid.sim.suite.SOAK_SAFETY), on
+    # the thesis' stationary capture (a cloud every 0.5 s, staleness 1.5 s), not the shipped
     # stream: the half hour is about the loop and its memory, and 36 000 stream clouds (each
     # a map update) do not fit CI; tools/soak.py runs the shipped configuration
-    safety = dataclasses.replace(
-        cfg.safety,
-        escape_speed_mm_s=ESCAPE_SPEED_MM_S,
-        unknown_policy="creep",
-        perception_timeout_s=1.5,
-    )
-    perception = dataclasses.replace(cfg.perception, capture="stationary")
-    core = ControlCore(dataclasses.replace(cfg, safety=safety, perception=perception))
+    core = soak_core()
     sim = Simulator(
-        cluttered_room(),
+        soak_course(),
         core,
         soak_settings(),
         joystick=random_ride(7, duration_s),
