@@ -356,10 +356,9 @@ class SafetyLayer:
             tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
             | None
         ) = None
-        self._sweeps: dict[tuple[float, float], tuple[float, CellState | None]] = {}
+        # per twist: clearance, blocking state, side intrusion (:meth:`_side_intrusion`, mm)
+        self._sweeps: dict[tuple[float, float], tuple[float, CellState | None, float]] = {}
         self._fractions: dict[tuple[float, float], float] = {}
-        self._contact_ys: dict[tuple[float, float], float] = {}
-        self._contact_y_mm = 0.0  # of the last uncached sweep
         self._unknown: dict[tuple[float, float], tuple[float, float]] = {}
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
@@ -441,9 +440,24 @@ class SafetyLayer:
         evidence_key: object,
     ) -> tuple[float, CellState | None]:
         """:meth:`sweep`'s clearance and blocking state (cached per map content and twist)."""
+        clearance, state, _ = self._blocking_sweep(
+            grid, v_mm_s, omega_rad_s, evidence, evidence_key
+        )
+        return clearance, state
+
+    def _blocking_sweep(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        evidence: Evidence | None,
+        evidence_key: object,
+    ) -> tuple[float, CellState | None, float]:
+        """:meth:`_sweep_blocking` and, for a straight forward twist, the side intrusion of what
+        it meets (:meth:`_side_intrusion`; 0 otherwise), cached together."""
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm  # speed of the fastest point
         if u <= 0.0:
-            return math.inf, None
+            return math.inf, None, 0.0
         self._use_map(grid, evidence, evidence_key)
         cached = self._sweeps.get((v_mm_s, omega_rad_s))
         if cached is not None:
@@ -451,8 +465,7 @@ class SafetyLayer:
         assert self._blocking is not None
         bx, by, grow, bdrop = self._blocking
         sb = self._contact(bx, by, grow, v_mm_s, omega_rad_s, u)
-        clearance, state = math.inf, None
-        self._contact_y_mm = 0.0
+        clearance, state, side = math.inf, None, 0.0
         if sb.size:
             k = int(np.argmin(sb))
             if math.isfinite(sb[k]):
@@ -461,14 +474,12 @@ class SafetyLayer:
                 tie = sb <= clearance + h
                 state = CellState.DROPOFF if np.any(bdrop[tie]) else CellState.OBSTACLE
                 if omega_rad_s == 0.0 and v_mm_s > 0.0:
-                    self._contact_y_mm = self._side_intrusion(by, grow, sb)
-        result = (clearance, state)
+                    side = self._side_intrusion(by, grow, sb)
+        result = (clearance, state, side)
         if len(self._sweeps) >= 256:
             self._sweeps.clear()
-        self._contact_ys.pop((v_mm_s, omega_rad_s), None)
         if self._map_key is not None:
             self._sweeps[(v_mm_s, omega_rad_s)] = result
-            self._contact_ys[(v_mm_s, omega_rad_s)] = self._contact_y_mm
         return result
 
     def _side_intrusion(
@@ -487,13 +498,21 @@ class SafetyLayer:
             return float(np.max(self._y1 + g - y))
         return -float(np.max(self._y1 + g + y))
 
-    def _contact_side(self, v_mm_s: float, omega_rad_s: float) -> float:
+    def _contact_side(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        evidence: Evidence | None,
+        evidence_key: object,
+    ) -> float:
         """For a straight forward request: +1 if what limits it within the slow zone lies all
         left of the path and a sideways shift the sharpest candidate arc makes over the slow
         zone's travel (``_arc_shift_mm``) clears it, −1 likewise right, else 0 (after its
         sweep: :meth:`_side_intrusion`)."""
-        y = self._contact_ys.get((v_mm_s, omega_rad_s), self._contact_y_mm)
-        if not self._arc_radii_mm or abs(y) > self._arc_shift_mm:
+        if not self._arc_radii_mm or v_mm_s <= 0.0:
+            return 0.0
+        y = self._blocking_sweep(grid, v_mm_s, 0.0, evidence, evidence_key)[2]
+        if abs(y) > self._arc_shift_mm:
             return 0.0
         return float(np.sign(y))
 
@@ -529,7 +548,6 @@ class SafetyLayer:
         self._map_key = map_key
         self._sweeps.clear()
         self._fractions.clear()
-        self._contact_ys.clear()
         self._unknown.clear()
         if evidence is None:
             xs, ys = self._centres(grid)
@@ -847,10 +865,14 @@ class SafetyLayer:
         decision = self._limit(grid, v_mm_s, omega_rad_s, perception_age_s, evidence, evidence_key)
         # a straight forward request when what limits it within the slow zone is a side
         # intrusion a small shift clears (a door jamb); the arcs turn away from it
-        softenable = omega_rad_s != 0.0 or (
-            v_mm_s > 0.0 and self._arc_radii_mm and self._contact_side(v_mm_s, 0.0) != 0.0
-        )
-        if decision.scale < 1.0 and softenable and self.settings.soften:
+        if (
+            decision.scale < 1.0
+            and self.settings.soften
+            and (
+                omega_rad_s != 0.0
+                or self._contact_side(grid, v_mm_s, evidence, evidence_key) != 0.0
+            )
+        ):
             decision = self.soften(
                 grid, v_mm_s, omega_rad_s, decision, perception_age_s, evidence, evidence_key
             )
@@ -928,7 +950,9 @@ class SafetyLayer:
             return p - math.hypot(ax - p * ux, ay - p * uy)
 
         best, best_score = limited, score(limited.v_mm_s, limited.omega_rad_s)
-        side = self._contact_side(v_mm_s, 0.0) if omega_rad_s == 0.0 else 0.0
+        side = (
+            self._contact_side(grid, v_mm_s, evidence, evidence_key) if omega_rad_s == 0.0 else 0.0
+        )
         candidates = self.soften_candidates(v_mm_s, omega_rad_s, side)
         bounded = [(score(v, w), v, w) for v, w in candidates]
         bounded.sort(key=lambda c: -c[0])  # stable: list order among equal bounds
