@@ -373,6 +373,23 @@ def _gauss_newton_step(
     return tuple(out)
 
 
+def _neighbour_profiles(
+    i: NDArray[np.intp],
+    j: NDArray[np.intp],
+    win_r: NDArray[np.float64],
+    win_c: NDArray[np.float64],
+    st: _FitState,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The 1-D row and column profiles (pairs, size) of the neighbour j's current model over the
+    window of the dot i, for each pair (a model is separable: the window's light is their outer
+    product times the neighbour's mass)."""
+    size = win_r.shape[1]
+    sj = st.s[j, None]
+    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
+    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    return gjr, gjc
+
+
 def _neighbour_light(
     i: NDArray[np.intp],
     j: NDArray[np.intp],
@@ -392,9 +409,7 @@ def _neighbour_light(
     if not keep.any():
         return out
     i, j = i[keep], j[keep]
-    sj = st.s[j, None]
-    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
-    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
     light = st.mass[j, None, None] * gjr[:, :, None] * gjc[:, None, :]
     starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
     out[slot[i[starts]]] = np.add.reduceat(light, starts, axis=0)
@@ -415,10 +430,7 @@ def _neighbour_sums(
     window sums of the dots i (indices into ``frw``, ``fcw``, ``win_r``, ``win_c``; pairs
     sorted by i). A model is separable, so each pair's share is an outer product of two 1-D
     overlaps."""
-    size = win_r.shape[1]
-    sj = st.s[j, None]
-    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
-    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
     vr = (frw[i] @ gjr[:, :, None])[:, :, 0]  # (pairs, 5)
     vc = (gjc[:, None, :] @ fcw[i])[:, 0, :]
     contrib = (st.mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
