@@ -105,6 +105,14 @@ def window_half_px(sigma_px: float) -> int:
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
 
 
+def stable_argsort(keys: NDArray[np.integer]) -> NDArray[np.intp]:
+    """``np.argsort(keys, kind="stable")`` of non-negative integer keys, by numpy's radix sort
+    when they fit 16 bits (~15x faster than its 64-bit merge sort on ~10³ shuffled keys)."""
+    if len(keys) and int(keys.max()) < 1 << 16 and int(keys.min()) >= 0:
+        keys = keys.astype(np.uint16)
+    return np.argsort(keys, kind="stable").astype(np.intp, copy=False)
+
+
 def near_pairs(
     rows: NDArray, cols: NDArray, reach: float, sort: bool = True
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -130,7 +138,7 @@ def near_pairs(
     gc = np.floor((c - c.min()) / cell).astype(np.int64) + 1
     width = int(gc.max()) + 2
     key = gr * width + gc
-    order = np.argsort(key, kind="stable")
+    order = stable_argsort(key)
     per_cell = np.bincount(key, minlength=(int(gr.max()) + 2) * width)
     cell_start = np.cumsum(per_cell) - per_cell
     shifts = (np.arange(-1, 2)[:, None] * width + np.arange(-1, 2)[None, :]).ravel()
