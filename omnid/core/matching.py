@@ -163,7 +163,7 @@ def _candidates_by_row(
     rows1: NDArray[np.float64], rows2: NDArray[np.float64], tol: float
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """All index pairs (i, j) with |rows1[i] − rows2[j]| <= tol (sorting, no N×M matrix)."""
-    order = np.argsort(rows2, kind="stable")
+    order = stable_argsort(rows2)
     srt = rows2[order]
     lo = np.searchsorted(srt, rows1 - tol, side="left")
     hi = np.searchsorted(srt, rows1 + tol, side="right")
@@ -364,8 +364,9 @@ class BeamTracks:
     m(u) = alpha + beta·u with m = (x1, y1, x2, y2) ideal offsets, px (see
     :class:`~omnid.core.laser.LaserModel`), and what makes the tracks uncertain."""
 
-    alpha: NDArray[np.float64]  # (K, 4) px
-    beta: NDArray[np.float64]  # (K, 4) px·mm
+    # (4, K): coordinate first (numpy works ~5x slower along short rows)
+    alpha: NDArray[np.float64]  # (4, K) px
+    beta: NDArray[np.float64]  # (4, K) px·mm
     slope: NDArray[np.float64]  # (K, 2) s
     cross_mm: NDArray[np.float64]  # (K, 2) c
     floor_sigma_mm: NDArray[np.float64]  # (K,)
@@ -392,10 +393,8 @@ class BeamTracks:
         s, c = laser.slopes()
         f1, f2 = rig.cam1.f_over_k_px, rig.cam2.f_over_k_px
         y1, y2 = rig.cam1.y_mm, rig.cam2.y_mm
-        alpha = np.column_stack([-f1 * s[:, 0], f1 * s[:, 1], -f2 * s[:, 0], f2 * s[:, 1]])
-        beta = np.column_stack(
-            [-f1 * c[:, 0], f1 * (c[:, 1] - y1), -f2 * c[:, 0], f2 * (c[:, 1] - y2)]
-        )
+        alpha = np.array([-f1 * s[:, 0], f1 * s[:, 1], -f2 * s[:, 0], f2 * s[:, 1]])
+        beta = np.array([-f1 * c[:, 0], f1 * (c[:, 1] - y1), -f2 * c[:, 0], f2 * (c[:, 1] - y2)])
         fl = np.asarray(laser.floor_mm, dtype=np.float64)
         order = np.argsort(fl[:, 0], kind="stable").astype(np.intp)
         x_rank = np.empty(len(order), np.intp)
@@ -493,15 +492,14 @@ def _empty_triples() -> TripleMatch:
 
 
 def _beams_near(
-    tr: BeamTracks, xy: NDArray[np.float64], radius: NDArray[np.float64]
+    tr: BeamTracks, x: NDArray[np.float64], y: NDArray[np.float64], radius: NDArray[np.float64]
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """(query, beam) for every beam whose floor point lies within ``radius`` of ``xy``, sorted
+    """(query, beam) for every beam whose floor point lies within ``radius`` of (``x``, ``y``), sorted
     by query, then by the beam's floor X. Searched in the cells the disk's bounding square
     touches (a superset, widened by ``_EPS_MM``), then tested exactly."""
     x0, y0 = tr.cell_origin_mm
     n_bands, n_cols = tr.cell_shape
     r = radius + _EPS_MM
-    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
     b_lo = np.clip(np.floor((y - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
     b_hi = np.clip(np.floor((y + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
     c_lo = np.clip(np.floor((x - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
@@ -516,6 +514,7 @@ def _beams_near(
     rq = radius[q]
     ok = dx * dx + dy * dy <= rq * rq
     q, k = q[ok], tr.cell_order[pos[ok]]
+    # (nearly sorted already: the merge sort runs through it)
     order = np.argsort(q * len(tr.x_rank) + tr.x_rank[k], kind="stable")
     return q[order], k[order]
 
@@ -556,37 +555,39 @@ def match_triples(
     )
     if len(i) == 0:
         return _empty_triples()
-    off1, off2 = rig.cam1.ideal_offsets(d1[:, :2]), rig.cam2.ideal_offsets(d2[:, :2])
-    # (rows gathered with np.take: numpy indexes the rows of a 2-D array ~10x slower)
-    m = np.hstack([np.take(off1, i, axis=0), np.take(off2, j, axis=0)])  # per pair
+    # (x1, y1, x2, y2) of each pair, coordinate first as below: numpy works ~5x slower along
+    # short rows (and indexes the rows of a 2-D array ~10x slower)
+    off1 = rig.cam1.ideal_offsets(d1[:, :2]).T
+    off2 = rig.cam2.ideal_offsets(d2[:, :2]).T
+    m = np.vstack([np.take(off1, i, axis=1), np.take(off2, j, axis=1)])  # (4, pairs)
     A = best_design_matrix(rig)
-    theta = m @ np.linalg.pinv(A).T  # (p, q, u) of each pair
-    u_st = theta[:, 2]
+    p_st, q_st, u_st = np.linalg.pinv(A) @ m  # (p, q, u) of each pair
     # 2. the beams such a point could lie on: project it from the source onto the floor
     o = tr.source_mm
     z = 1.0 / u_st
     lever = (H - o[2]) / (z - o[2])
-    xy = o[None, :2] + (theta[:, :2] * z[:, None] - o[None, :2]) * lever[:, None]
+    x_fl = o[0] + (p_st * z - o[0]) * lever
+    y_fl = o[1] + (q_st * z - o[1]) * lever
     f = float(np.mean(tr.f_px))
-    s_abs = np.hypot(theta[:, 0], theta[:, 1])
+    s_abs = np.hypot(p_st, q_st)
     sz = z * z * math.sqrt(2.0) * sig / (f * rig.baseline_mm)
     sig_q = lever * np.hypot(sig * z / f, s_abs * sz)
     so = tr.source_sigma_mm
     sig_o = np.abs(lever - 1.0) * np.sqrt(0.5 * (so[0] ** 2 + so[1] ** 2) + s_abs**2 * so[2] ** 2)
     radius = s.gate_sigma * np.sqrt(sig_q**2 + sig_o**2 + np.max(tr.floor_sigma_mm) ** 2) + 1.0
-    pq, k = _beams_near(tr, xy, radius)
+    pq, k = _beams_near(tr, x_fl, y_fl, radius)
     if len(pq) == 0:
         return _empty_triples()
     # 3. each triple's least-squares depth along its beam and residual (3 degrees of freedom)
-    mm = np.take(m, pq, axis=0)
-    al, be = np.take(tr.alpha, k, axis=0), np.take(tr.beta, k, axis=0)
-    bb = np.sum(be * be, axis=1)
+    mm = np.take(m, pq, axis=1)
+    al, be = np.take(tr.alpha, k, axis=1), np.take(tr.beta, k, axis=1)
+    bb = np.sum(be * be, axis=0)
     u_lo = 1.0 / (H + s.dropoff_depth_mm)
     u_hi = 1.0 / max(s.near_depth_mm, o[2] + 1.0)
-    u = np.clip(np.sum((mm - al) * be, axis=1) / bb, u_lo, u_hi)
-    r = mm - al - be * u[:, None]
+    u = np.clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
+    r = mm - al - be * u
     sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)
-    chi2 = np.sum(r * r, axis=1) / (sig_t * sig_t)
+    chi2 = np.sum(r * r, axis=0) / (sig_t * sig_t)
     # 4. weight: log-likelihood ratio of the triple against leaving its dots unpaired and its
     # beam unseen (module docstring); only triples worth taking enter the assignment
     n1, n2 = len(d1), len(d2)
@@ -660,7 +661,7 @@ def _dominant_triples(
     # Triples heaviest first (ties by index); their node entries sorted by node once (stable:
     # each node's triples stay heaviest first). Every round then only drops the entries of
     # the triples gone: what is left is still in that order, so no round sorts again.
-    perm = np.argsort(-w, kind="stable").astype(np.intp)
+    perm = stable_argsort(-w)
     wp, ndp = w[perm], np.take(nodes, perm, axis=0)
     flat = ndp.ravel()  # (3T,) entry e belongs to triple e // 3 (in perm's order)
     entry = stable_argsort(flat)
@@ -669,6 +670,8 @@ def _dominant_triples(
     alive = np.ones(t_all, dtype=bool)
     live = np.arange(t_all)  # the open triples (in perm's order), and below their entries
     s_e = np.empty(3 * t_all)  # per entry: the largest other weight at its node
+    s_cols = [s_e[c::3] for c in range(3)]  # (per column: numpy is slow along short rows)
+    nd_cols = [ndp[:, c] for c in range(3)]
     sure: list[NDArray[np.intp]] = []
     n_nodes = int(nodes.max()) + 1
     while True:
@@ -679,15 +682,16 @@ def _dominant_triples(
         sizes = np.diff(np.concatenate([starts, [len(e_node)]]))
         top2 = np.where(sizes > 1, e_w[np.minimum(starts + 1, len(e_node) - 1)], 0.0)
         s_e[entry] = np.where(first, top2[group], top1[group])
-        s_t = np.take(s_e.reshape(-1, 3), live, axis=0).sum(axis=1)
+        s_t = s_cols[0][live] + s_cols[1][live] + s_cols[2][live]
         dom = wp[live] > s_t
         if not dom.any():
             break
         taken = live[dom]
         sure.append(np.sort(perm[taken]))
         used = np.zeros(n_nodes, dtype=bool)
-        used[np.take(ndp, taken, axis=0).ravel()] = True
-        gone = used[np.take(ndp, live, axis=0)].any(axis=1)
+        for col in nd_cols:
+            used[col[taken]] = True
+        gone = used[nd_cols[0][live]] | used[nd_cols[1][live]] | used[nd_cols[2][live]]
         alive[live[gone]] = False
         live = live[~gone]
         if len(live) == 0:
@@ -723,7 +727,7 @@ def _max_weight_packing(
         return sure, len(sure), 1, 0
     nodes, w = np.take(nodes_all, rest, axis=0), w[rest]
     lab = _components(nodes)
-    order = np.argsort(lab, kind="stable")
+    order = stable_argsort(lab)
     lab_s = lab[order]
     starts = np.flatnonzero(np.concatenate([[True], lab_s[1:] != lab_s[:-1]]))
     sizes = np.diff(np.concatenate([starts, [len(lab_s)]]))

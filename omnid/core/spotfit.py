@@ -105,12 +105,22 @@ def window_half_px(sigma_px: float) -> int:
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
 
 
-def stable_argsort(keys: NDArray[np.integer]) -> NDArray[np.intp]:
-    """``np.argsort(keys, kind="stable")`` of non-negative integer keys, by numpy's radix sort
-    when they fit 16 bits (~15x faster than its 64-bit merge sort on ~10³ shuffled keys)."""
-    if len(keys) and int(keys.max()) < 1 << 16 and int(keys.min()) >= 0:
-        keys = keys.astype(np.uint16)
-    return np.argsort(keys, kind="stable").astype(np.intp, copy=False)
+def stable_argsort(keys: NDArray) -> NDArray[np.intp]:
+    """``np.argsort(keys, kind="stable")`` of a 1-D array, faster: numpy's stable sort of 32-
+    and 64-bit keys (a merge sort) is ~5x slower than its quicksort on ~10³ shuffled keys,
+    which gives the same order when no two keys tie (ties, rare for real-valued keys, take the
+    stable sort); integer keys that fit 16 bits take its radix sort (~15x faster)."""
+    n = len(keys)
+    if n < 2:
+        return np.arange(n, dtype=np.intp)
+    if keys.dtype.kind in "iu" and int(keys.min()) >= 0 and int(keys.max()) < 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable").astype(np.intp, copy=False)
+    order = np.argsort(keys)
+    srt = keys[order]
+    tie = bool(np.any(srt[1:] == srt[:-1])) or (srt.dtype.kind == "f" and bool(np.isnan(srt[-1])))
+    if tie:
+        order = np.argsort(keys, kind="stable")
+    return order.astype(np.intp, copy=False)
 
 
 def near_pairs(
