@@ -900,7 +900,11 @@ def _ring_contrast(
     the 8 points may fall on neighbours)."""
     radius = min(max(_FAR_RING * spot_px, 3.0), 10.0)
     pad = math.ceil(radius) + 1
-    big = cv2.copyMakeBorder(sm, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    h, w = sm.shape
+    if min(rows.min(), cols.min()) >= pad and rows.max() < h - pad and cols.max() < w - pad:
+        big, pad = sm, 0  # every ring inside: no border needed
+    else:
+        big = cv2.copyMakeBorder(sm, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
     ang = np.arange(8) * (math.pi / 4.0)
     # (8, n): one bilinear look-up for the whole ring
     ring_r = (rows + pad)[None, :] + np.array([[radius * math.sin(a)] for a in ang])
