@@ -52,6 +52,7 @@ from scipy.spatial import cKDTree
 
 from omnid.config import Settings, require, setting
 from omnid.core import spotfit, spotshape
+from omnid.core.arrays import median
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -523,14 +524,6 @@ def _log_quadratic(
     return rows + np.clip(dr, -1, 1), cols + np.clip(dc, -1, 1), mean_var, max_var, ok
 
 
-def _median(x: NDArray) -> float:
-    """``np.median`` of a non-empty 1-D array, by partition (a few times faster on ~10³)."""
-    n = len(x)
-    lo, hi = (n - 1) // 2, n // 2
-    q = np.partition(x, (lo, hi))
-    return 0.5 * (float(q[lo]) + float(q[hi]))
-
-
 def _spot_sigma(mean_var: NDArray[np.float64], peak: NDArray) -> float:
     """The image's spot size (Gaussian sigma, px) from the curvature of the σ = 1 px smoothed
     image at its peaks (``mean_var`` of :func:`_log_quadratic`): a spot of sigma σ there has
@@ -544,7 +537,7 @@ def _spot_sigma(mean_var: NDArray[np.float64], peak: NDArray) -> float:
     good = mean_var[np.isfinite(mean_var)]
     if len(good) == 0:
         return 1.3
-    sigma2 = _median(good) - 1.0 - 1.0 / 12.0
+    sigma2 = median(good) - 1.0 - 1.0 / 12.0
     lo, hi = _SPOT_SIGMA_RANGE_PX
     return float(np.clip(math.sqrt(max(sigma2, lo * lo)), lo, hi))
 

@@ -59,7 +59,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import require
-from omnid.core.spotfit import stable_argsort
+from omnid.core.arrays import stable_argsort
 
 if TYPE_CHECKING:
     from omnid.core.calibration import Calibration

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import require
+from omnid.core.arrays import median
 from omnid.core.calibration import Calibration
 from omnid.core.detect import DetectionParams, detect_dots
 from omnid.core.laser import LaserModel
@@ -173,7 +174,7 @@ def _health(
 ) -> CalibrationHealth:
     dots = n1 + n2
     explained = 2.0 * matched / dots if dots else math.nan
-    med = float(np.median(ratio)) if len(ratio) else math.nan
+    med = median(ratio) if len(ratio) else math.nan
     judged = dots >= s.min_dots
     return CalibrationHealth(
         explained if judged else math.nan, med, dots, not judged or explained >= s.min_explained

@@ -35,6 +35,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from omnid.core.arrays import stable_argsort
+
 #: Window half-size per spot sigma: the fit sees ±3 σ of each dot.
 WINDOW_PER_SIGMA = 3.0
 #: Gaussian taper of the fit's weights, in spot sigmas.
@@ -103,24 +105,6 @@ def window_gaussian(
 def window_half_px(sigma_px: float) -> int:
     """The fit's window half-size for spots of ``sigma_px``."""
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
-
-
-def stable_argsort(keys: NDArray) -> NDArray[np.intp]:
-    """``np.argsort(keys, kind="stable")`` of a 1-D array, faster: numpy's stable sort of 32-
-    and 64-bit keys (a merge sort) is ~5x slower than its quicksort on ~10³ shuffled keys,
-    which gives the same order when no two keys tie (ties, rare for real-valued keys, take the
-    stable sort); integer keys that fit 16 bits take its radix sort (~15x faster)."""
-    n = len(keys)
-    if n < 2:
-        return np.arange(n, dtype=np.intp)
-    if keys.dtype.kind in "iu" and int(keys.min()) >= 0 and int(keys.max()) < 1 << 16:
-        return np.argsort(keys.astype(np.uint16), kind="stable").astype(np.intp, copy=False)
-    order = np.argsort(keys)
-    srt = keys[order]
-    tie = bool(np.any(srt[1:] == srt[:-1])) or (srt.dtype.kind == "f" and bool(np.isnan(srt[-1])))
-    if tie:
-        order = np.argsort(keys, kind="stable")
-    return order.astype(np.intp, copy=False)
 
 
 def near_pairs(

@@ -1,0 +1,33 @@
+"""Array helpers of the per-frame code: faster equivalents of numpy calls that are slow on the
+~10³-element arrays of one frame (same results)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+def stable_argsort(keys: NDArray) -> NDArray[np.intp]:
+    """``np.argsort(keys, kind="stable")`` of a 1-D array, faster: numpy's stable sort of 32-
+    and 64-bit keys (a merge sort) is ~5x slower than its quicksort on ~10³ shuffled keys,
+    which gives the same order when no two keys tie (ties, rare for real-valued keys, take the
+    stable sort); integer keys that fit 16 bits take its radix sort (~15x faster)."""
+    n = len(keys)
+    if n < 2:
+        return np.arange(n, dtype=np.intp)
+    if keys.dtype.kind in "iu" and int(keys.min()) >= 0 and int(keys.max()) < 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable").astype(np.intp, copy=False)
+    order = np.argsort(keys)
+    srt = keys[order]
+    tie = bool(np.any(srt[1:] == srt[:-1])) or (srt.dtype.kind == "f" and bool(np.isnan(srt[-1])))
+    if tie:
+        order = np.argsort(keys, kind="stable")
+    return order.astype(np.intp, copy=False)
+
+
+def median(x: NDArray) -> float:
+    """``np.median`` of a non-empty 1-D array, by partition (a few times faster on ~10³)."""
+    n = len(x)
+    lo, hi = (n - 1) // 2, n // 2
+    q = np.partition(x, (lo, hi))
+    return 0.5 * (float(q[lo]) + float(q[hi]))
