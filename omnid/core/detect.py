@@ -372,9 +372,11 @@ def _noise_sigma(d: NDArray) -> float:
     out. Integer images take the median from a histogram (same value as ``np.median``).
     """
     rows = d[:: max(d.shape[0] // 64, 1)]
-    diff = rows[:, 1:] - rows[:, :-1]
+    if rows.shape[1] < 2:
+        return 0.0
     if d.dtype.kind == "i":
-        counts = np.bincount(np.abs(diff).ravel())
+        # (|a − b| of the int16 difference images in one OpenCV pass, ~2x numpy's two)
+        counts = np.bincount(cv2.absdiff(rows[:, 1:], rows[:, :-1]).ravel())
         counts[:1] = 0
         n = int(counts.sum())
         if n < 16:
@@ -383,7 +385,7 @@ def _noise_sigma(d: NDArray) -> float:
         # np.median: the mean of the sorted values at (n − 1) // 2 and n // 2.
         mad = 0.5 * float(np.searchsorted(cum, (n - 1) // 2 + 1) + np.searchsorted(cum, n // 2 + 1))
     else:
-        flat = diff.ravel()
+        flat = (rows[:, 1:] - rows[:, :-1]).ravel()
         flat = flat[flat != 0]
         if flat.size < 16:
             return 0.0
