@@ -39,8 +39,8 @@ of either kind.) Further:
   like an obstacle's stop zone (``refuse``, reason ``unknown_stop``), and the chair may only
   approach it as fast as it could still stop before it (reason ``unknown_ahead``) — split by
   face as above: ahead of the leading face by cell centres against the footprint itself and the
-  stop zone; in a swing each cell as an obstacle of its whole extent against the footprint
-  with its margins and the stopping distance (no buffer: the whole cell is taken); with
+  stop zone; in a swing each cell by its whole extent against the footprint itself and the
+  stopping distance (no buffer: the whole cell is taken), so it never enters one; with
   ``creep`` it is crossed at ``unknown_creep_speed_mm_s`` (``unknown_creep``). One band is
   crossed at creep speed under either policy: the ``front_blind_mm`` straight ahead of the
   footrests, which the laser cannot see from where the chair stands (its nearest dots fall
@@ -688,12 +688,18 @@ class SafetyLayer:
         v_mm_s: float,
         omega_rad_s: float,
         u: float,
+        margins: bool = True,
     ) -> NDArray[np.float64]:
-        """Contact path parameter (mm) of each point, the footprint grown by the point's own
-        ``grow`` (mm); points under the chair itself (the footprint without its margin)
-        ignored (see :func:`contact_path_s`)."""
+        """Contact path parameter (mm) of each point, the footprint (with its margins, or
+        without: ``margins=False``) grown by the point's own ``grow`` (mm); points under the
+        chair itself (the footprint without its margin) ignored (see :func:`contact_path_s`)."""
         hz = self.settings.horizon_mm
-        rect = (self._x0 - grow, self._x1 + grow, self._y0 - grow, self._y1 + grow)
+        x0, x1, y0, y1 = (
+            (self._x0, self._x1, self._y0, self._y1)
+            if margins
+            else (self._fx0, self._fx1, self._fy0, self._fy1)
+        )
+        rect = (x0 - grow, x1 + grow, y0 - grow, y1 + grow)
         s_mm = contact_path_s(px, py, v_mm_s, omega_rad_s, rect, u, hz)
         own = (px >= self._fx0) & (px <= self._fx1) & (py >= self._fy0) & (py <= self._fy1)
         band = np.flatnonzero((s_mm == 0.0) & ~own)
@@ -705,11 +711,9 @@ class SafetyLayer:
             # later when it draws away first and comes back. So a thing seen inside the margin
             # is never driven into (the margin is not traded), and never strands the chair.
             bx, by = px[band], py[band]
-            g = np.maximum(
-                np.maximum(self._x0 - bx, bx - self._x1), np.maximum(self._y0 - by, by - self._y1)
-            )
+            g = np.maximum(np.maximum(x0 - bx, bx - x1), np.maximum(y0 - by, by - y1))
             g = g - 1e-9 * (np.abs(g) + 1.0)  # the point just outside its own rectangle
-            grown = (self._x0 - g, self._x1 + g, self._y0 - g, self._y1 + g)
+            grown = (x0 - g, x1 + g, y0 - g, y1 + g)
             s_mm[band] = contact_path_s(bx, by, v_mm_s, omega_rad_s, grown, u, hz)
         s_mm[own] = math.inf
         return s_mm
@@ -738,10 +742,11 @@ class SafetyLayer:
     ) -> tuple[float, float]:
         """:meth:`unknown_clearance`'s never-seen cells outside the blind band split by the face
         that meets them (as :meth:`contacts`): (the leading face's first contact, by centres
-        against the footprint itself as there; the swing's first contact, each cell as an
-        obstacle of its whole extent — its centre grown by half a cell — against the
-        footprint with its margins, so that what a swing may near is as far from the unseen as
-        from a seen obstacle). ``inf`` for none, or none within the reach."""
+        against the footprint itself as there; the swing's first contact, each cell by its whole
+        extent — its centre grown by half a cell — against the footprint itself: the swing may
+        come as near as its stopping distance, so the footprint never enters a cell never seen;
+        one it overlaps now, its trail's edge, it enters no further). ``inf`` for none, or none
+        within the reach."""
         _, _, lead, swing = self._unknown_sweep(grid, v_mm_s, omega_rad_s)
         return lead, swing
 
@@ -776,8 +781,8 @@ class SafetyLayer:
         wx = ox[:, None] + c * cx - sn * cy
         wy = oy[:, None] + sn * cx + c * cy
         bulge = self.r_max_mm * (1.0 - math.cos(0.5 * abs(float(th[1] - th[0]))))
-        # (and the margins and a cell's half-diagonal: the swing's contacts, unknown_contacts)
-        pad = res + bulge + max(s.margin_mm, s.side_margin_mm) + h
+        # (and half a cell: the swing's contacts by the cells' extent, unknown_contacts)
+        pad = 1.5 * res + bulge
         i0 = math.floor((wx.min() - pad - g.x_min_mm) / res)
         i1 = math.floor((wx.max() + pad - g.x_min_mm) / res) + 1
         j0 = math.floor((wy.min() - pad - g.y_min_mm) / res)
@@ -799,8 +804,10 @@ class SafetyLayer:
             blind &= np.abs(py) <= self._y1 + h
         lead = self._leading(px, py, s_mm, v_mm_s, omega_rad_s, u, self._fx0, self._fx1)
         swing = ~blind & ~lead
-        # the grid is in the robot frame: a cell's extent is its centre grown by half a cell
-        s_ext = self._contact(px[swing], py[swing], 0.5 * res, v_mm_s, omega_rad_s, u)
+        # the grid is in the robot frame: a cell's extent is its centre grown by half a cell;
+        # against the footprint itself (the margin is for the position error of things seen)
+        # (one the chair overlaps now, its trail's edge: no nearer than it is)
+        s_ext = self._contact(px[swing], py[swing], 0.5 * res, v_mm_s, omega_rad_s, u, False)
         found = (s_mm[~blind], s_mm[blind], s_mm[~blind & lead], s_ext)
         first = [float(x.min()) if x.size and x.min() <= reach else math.inf for x in found]
         result = (first[0], first[1], first[2], first[3])

@@ -287,8 +287,8 @@ def test_a_turns_swing_needs_its_stopping_distance_the_leading_face_the_stop_zon
     place swings the tail towards it (no leading face), allowed as fast as the tail can still
     stop (reaction time, then braking) ``swing_buffer_mm`` before it — not refused 150 mm of
     travel early; the tail within that buffer and stopping distance: refused. The same gap
-    ahead of the leading face keeps the stop zone. Never-seen floor beside the chair is an
-    obstacle to the swing by each cell's whole extent."""
+    ahead of the leading face keeps the stop zone. Never-seen floor beside the chair: the
+    swing never enters a cell of it (each cell by its whole extent)."""
     half = 0.5 * S.footprint_width_mm + S.side_margin_mm
 
     def beside(gap_mm: float, state: CellState = CellState.OBSTACLE) -> OccupancyGrid:
@@ -317,10 +317,12 @@ def test_a_turns_swing_needs_its_stopping_distance_the_leading_face_the_stop_zon
     wall(ahead, S.footprint_front_mm + S.margin_mm + 100.0)
     assert SafetyLayer(S).check(ahead, 150.0, 0.0, perception_age_s=0.1).stopped
     # never seen beside the chair: the swing is refused once a cell's extent is within the
-    # stopping distance, slowed before (unknown_ahead), as for a seen obstacle
-    near_unseen = SafetyLayer(S).check(beside(5.0, CellState.UNKNOWN), 0.0, 0.3, 0.1)
+    # stopping distance of the chair itself (no margin: that is for things seen), slowed before
+    # (unknown_ahead) as for a seen obstacle
+    side = S.side_margin_mm
+    near_unseen = SafetyLayer(S).check(beside(10.0 - side, CellState.UNKNOWN), 0.0, 0.3, 0.1)
     assert near_unseen.stopped and Reason.UNKNOWN_STOP in near_unseen.reasons
-    far_unseen = SafetyLayer(S).check(beside(60.0, CellState.UNKNOWN), 0.0, 0.3, 0.1)
+    far_unseen = SafetyLayer(S).check(beside(60.0 - side, CellState.UNKNOWN), 0.0, 0.3, 0.1)
     assert not far_unseen.stopped and Reason.UNKNOWN_AHEAD in far_unseen.reasons
 
 
