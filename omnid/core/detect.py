@@ -902,14 +902,11 @@ def _ring_contrast(
     pad = math.ceil(radius) + 1
     big = cv2.copyMakeBorder(sm, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
     ang = np.arange(8) * (math.pi / 4.0)
-    ring = np.stack(
-        [
-            _bilinear(big, rows + pad + radius * math.sin(a), cols + pad + radius * math.cos(a))
-            for a in ang
-        ],
-        axis=1,
-    )
-    return np.asarray(1.0 - np.median(ring, axis=1) / np.maximum(top, 1e-6), dtype=np.float64)
+    # (8, n): one bilinear look-up for the whole ring
+    ring_r = (rows + pad)[None, :] + np.array([[radius * math.sin(a)] for a in ang])
+    ring_c = (cols + pad)[None, :] + np.array([[radius * math.cos(a)] for a in ang])
+    ring = _bilinear(big, ring_r, ring_c)
+    return np.asarray(1.0 - np.median(ring, axis=0) / np.maximum(top, 1e-6), dtype=np.float64)
 
 
 _Candidates = tuple[
@@ -973,9 +970,8 @@ def _one_spot(
     i, j = i[sel], j[sel]
     if len(i) == 0:
         return keep
-    low = np.full(len(i), np.inf)
-    for t in (0.25, 0.5, 0.75):
-        low = np.minimum(low, _bilinear(sm, r[i] + t * (r[j] - r[i]), c[i] + t * (c[j] - c[i])))
+    t = np.array([0.25, 0.5, 0.75])[:, None]
+    low = _bilinear(sm, r[i] + t * (r[j] - r[i]), c[i] + t * (c[j] - c[i])).min(axis=0)
     keep[i[low >= (1.0 - _SADDLE_DEPTH) * top[i]]] = False
     return keep
 

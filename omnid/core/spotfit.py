@@ -105,6 +105,24 @@ def window_half_px(sigma_px: float) -> int:
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
 
 
+def stable_argsort(keys: NDArray) -> NDArray[np.intp]:
+    """``np.argsort(keys, kind="stable")`` of a 1-D array, faster: numpy's stable sort of 32-
+    and 64-bit keys (a merge sort) is ~5x slower than its quicksort on ~10³ shuffled keys,
+    which gives the same order when no two keys tie (ties, rare for real-valued keys, take the
+    stable sort); integer keys that fit 16 bits take its radix sort (~15x faster)."""
+    n = len(keys)
+    if n < 2:
+        return np.arange(n, dtype=np.intp)
+    if keys.dtype.kind in "iu" and int(keys.min()) >= 0 and int(keys.max()) < 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable").astype(np.intp, copy=False)
+    order = np.argsort(keys)
+    srt = keys[order]
+    tie = bool(np.any(srt[1:] == srt[:-1])) or (srt.dtype.kind == "f" and bool(np.isnan(srt[-1])))
+    if tie:
+        order = np.argsort(keys, kind="stable")
+    return order.astype(np.intp, copy=False)
+
+
 def near_pairs(
     rows: NDArray, cols: NDArray, reach: float, sort: bool = True
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -130,7 +148,7 @@ def near_pairs(
     gc = np.floor((c - c.min()) / cell).astype(np.int64) + 1
     width = int(gc.max()) + 2
     key = gr * width + gc
-    order = np.argsort(key, kind="stable")
+    order = stable_argsort(key)
     per_cell = np.bincount(key, minlength=(int(gr.max()) + 2) * width)
     cell_start = np.cumsum(per_cell) - per_cell
     shifts = (np.arange(-1, 2)[:, None] * width + np.arange(-1, 2)[None, :]).ravel()
