@@ -1032,10 +1032,13 @@ def _depth_sigma(cov: NDArray[np.float64], n: int) -> NDArray[np.float64]:
 
 
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
-    """Delaunay triangles (T, 3) of indices into 2-D points ``xy`` (N, 2) (cv2.Subdiv2D)."""
+    """Delaunay triangles (T, 3) of indices into 2-D points ``xy`` (N, 2) (cv2.Subdiv2D).
+    The points are snapped to 1/16 mm first (exact in float32 on the map's scale): Subdiv2D
+    builds a zero-area triangle from two points a rounding error apart (6e-24 mm) and then
+    fails to locate the next point; snapped, they are one vertex."""
     import cv2
 
-    pts = xy.astype(np.float32)
+    pts = (np.round(xy * 16.0) / 16.0).astype(np.float32)
     lo = pts.min(axis=0) - 10.0
     hi = pts.max(axis=0) + 10.0
     sub = cv2.Subdiv2D((float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])))

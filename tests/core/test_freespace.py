@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from omnid.core.classify import with_classes
@@ -257,6 +257,13 @@ def test_settings_validated_and_blocked_cells_listed():
 
 
 @settings(max_examples=40, deadline=None)
+# two points 6e-24 mm apart: Subdiv2D made a zero-area triangle of them and failed the next insert
+@example(
+    pts=[(0.0, 6.4e-24, 1.0, 0), (1.0, 0.0, 2.0, 0), (-1.0, 0.0, 2.0, 0), (-1.0, 0.0, 3.0, 0),
+         (1.0, 0.0, 1.0, 0), (0.0, 0.0, 1.0, 0), (-1.0, -1.0, 1.0, 0)],
+    motion=(0.0, 0.0, 0.0),
+    dup=False,
+)  # fmt: skip
 @given(
     pts=st.lists(
         st.tuples(
