@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 
 from omnid.config import Settings, require, setting
 from omnid.core import spotfit, spotshape
-from omnid.core.arrays import median
+from omnid.core.arrays import median, quartiles
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -338,10 +338,11 @@ def _flicker_gain(d: NDArray, mask_gray: NDArray, noise: float) -> float:
     lit = m >= np.float32(_FLICKER_MIN_GRAY)
     if np.count_nonzero(lit) < 64:
         return 0.0
-    ratio = d[::step][lit] / m[lit]
+    m_lit = m[lit]
+    ratio = d[::step][lit] / m_lit
     mid = len(ratio) // 2
     gain = float(np.partition(ratio, mid)[mid])
-    return gain if abs(gain) * float(m[lit].mean()) >= 2.0 * noise else 0.0
+    return gain if abs(gain) * float(m_lit.mean()) >= 2.0 * noise else 0.0
 
 
 def _clutter(small: NDArray[np.float32], bg_half: NDArray[np.float32], mask_gray: NDArray) -> float:
@@ -359,9 +360,8 @@ def _clutter(small: NDArray[np.float32], bg_half: NDArray[np.float32], mask_gray
     res = (small[::8] - bg_half[::8])[: lit.shape[0], : lit.shape[1]][lit]
     if res.size < 64:
         return 0.0
-    k25, k50 = res.size // 4, res.size // 2
-    q = np.partition(res, (k25, k50))
-    return float(q[k50] - q[k25]) / 0.6745
+    q25, q50 = quartiles(res)
+    return float(q50 - q25) / 0.6745
 
 
 def _noise_sigma(d: NDArray) -> float:
