@@ -41,3 +41,9 @@ def quartiles(x: NDArray) -> NDArray:
     q = np.partition(x, k50)
     low = np.partition(q[:k50], k25)[k25] if k25 < k50 else q[k25]
     return np.array([low, q[k50]], dtype=x.dtype)
+
+
+def clip(x: NDArray, lo: float, hi: float) -> NDArray:
+    """``np.clip(x, lo, hi)`` for ``lo <= hi`` as two ufuncs, without np.clip's Python layers
+    (~4 us a call: it is called ~20 times a frame on small arrays)."""
+    return np.minimum(np.maximum(x, lo), hi)

@@ -59,7 +59,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import require
-from omnid.core.arrays import stable_argsort
+from omnid.core.arrays import clip, stable_argsort
 
 if TYPE_CHECKING:
     from omnid.core.calibration import Calibration
@@ -504,10 +504,10 @@ def _beams_near(
     x0, y0 = tr.cell_origin_mm
     n_bands, n_cols = tr.cell_shape
     r = radius + _EPS_MM
-    b_lo = np.clip(np.floor((y - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
-    b_hi = np.clip(np.floor((y + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
-    c_lo = np.clip(np.floor((x - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
-    c_hi = np.clip(np.floor((x + r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    b_lo = clip(np.floor((y - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    b_hi = clip(np.floor((y + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    c_lo = clip(np.floor((x - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    c_hi = clip(np.floor((x + r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
     qb, band = _expand_ranges(b_lo, b_hi + 1)  # (query, band) pairs
     row = band * n_cols
     # one run per (query, band): the cells c_lo … c_hi lie next to each other in cell order
@@ -585,7 +585,7 @@ def match_triples(
     bb = np.sum(be * be, axis=0)
     u_lo = 1.0 / (H + s.dropoff_depth_mm)
     u_hi = 1.0 / max(s.near_depth_mm, o[2] + 1.0)
-    u = np.clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
+    u = clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
     r = mm - al - be * u
     sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)
     chi2 = np.sum(r * r, axis=0) / (sig_t * sig_t)
