@@ -29,5 +29,21 @@ def median(x: NDArray) -> float:
     """``np.median`` of a non-empty 1-D array, by partition (a few times faster on ~10³)."""
     n = len(x)
     lo, hi = (n - 1) // 2, n // 2
-    q = np.partition(x, (lo, hi))
-    return 0.5 * (float(q[lo]) + float(q[hi]))
+    q = np.partition(x, hi)
+    return 0.5 * (float(q[:hi].max() if lo < hi else q[hi]) + float(q[hi]))
+
+
+def quartiles(x: NDArray) -> NDArray:
+    """The values of rank ``len(x) // 4`` and ``len(x) // 2`` of a non-empty 1-D array, in its
+    dtype (what ``np.partition(x, (k25, k50))`` puts there, ~6x faster: numpy's partition at
+    two ranks at once is slow)."""
+    k25, k50 = len(x) // 4, len(x) // 2
+    q = np.partition(x, k50)
+    low = np.partition(q[:k50], k25)[k25] if k25 < k50 else q[k25]
+    return np.array([low, q[k50]], dtype=x.dtype)
+
+
+def clip(x: NDArray, lo: float, hi: float) -> NDArray:
+    """``np.clip(x, lo, hi)`` for ``lo <= hi`` as two ufuncs, without np.clip's Python layers
+    (~4 us a call: it is called ~20 times a frame on small arrays)."""
+    return np.minimum(np.maximum(x, lo), hi)

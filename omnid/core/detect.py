@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 
 from omnid.config import Settings, require, setting
 from omnid.core import spotfit, spotshape
-from omnid.core.arrays import median
+from omnid.core.arrays import clip, median, quartiles
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -338,10 +338,11 @@ def _flicker_gain(d: NDArray, mask_gray: NDArray, noise: float) -> float:
     lit = m >= np.float32(_FLICKER_MIN_GRAY)
     if np.count_nonzero(lit) < 64:
         return 0.0
-    ratio = d[::step][lit] / m[lit]
+    m_lit = m[lit]
+    ratio = d[::step][lit] / m_lit
     mid = len(ratio) // 2
     gain = float(np.partition(ratio, mid)[mid])
-    return gain if abs(gain) * float(m[lit].mean()) >= 2.0 * noise else 0.0
+    return gain if abs(gain) * float(m_lit.mean()) >= 2.0 * noise else 0.0
 
 
 def _clutter(small: NDArray[np.float32], bg_half: NDArray[np.float32], mask_gray: NDArray) -> float:
@@ -359,9 +360,8 @@ def _clutter(small: NDArray[np.float32], bg_half: NDArray[np.float32], mask_gray
     res = (small[::8] - bg_half[::8])[: lit.shape[0], : lit.shape[1]][lit]
     if res.size < 64:
         return 0.0
-    k25, k50 = res.size // 4, res.size // 2
-    q = np.partition(res, (k25, k50))
-    return float(q[k50] - q[k25]) / 0.6745
+    q25, q50 = quartiles(res)
+    return float(q50 - q25) / 0.6745
 
 
 def _noise_sigma(d: NDArray) -> float:
@@ -419,7 +419,7 @@ def _background_half(
     low = cv2.blur(cv2.erode(small, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))), (k, k))
     # Noise of pyrDown's output: its 5x5 kernel's squared weights sum to (35/128)².
     lim = 2.0 * max(noise * 35.0 / 128.0, 0.25)
-    rest = np.clip(small - low, -lim, lim)
+    rest = clip(small - low, -lim, lim)
     k_bias = 2 * (_BIAS_RADIUS_PX // 2) + 1
     return np.asarray(low + cv2.blur(rest, (k_bias, k_bias)), dtype=np.float32)
 
@@ -523,7 +523,7 @@ def _log_quadratic(
     # The flatter principal curvature of the quadratic form [[q_r, q_rc/2], [q_rc/2, q_c]].
     flat = 0.5 * (qr + qc) + np.sqrt(0.25 * (qr - qc) ** 2 + 0.25 * qrc * qrc)
     max_var = np.where(ok & (flat < 0), -0.5 / np.minimum(flat, -1e-12), np.inf)
-    return rows + np.clip(dr, -1, 1), cols + np.clip(dc, -1, 1), mean_var, max_var, ok
+    return rows + clip(dr, -1, 1), cols + clip(dc, -1, 1), mean_var, max_var, ok
 
 
 def _spot_sigma(mean_var: NDArray[np.float64], peak: NDArray) -> float:
@@ -994,8 +994,8 @@ def _climb(
         if len(live) == 0:
             break
         dr, dc = np.divmod(best[moving], 3)
-        r[live] = np.clip(r[live] + dr - 1, 1, h - 2)
-        c[live] = np.clip(c[live] + dc - 1, 1, w - 2)
+        r[live] = clip(r[live] + dr - 1, 1, h - 2)
+        c[live] = clip(c[live] + dc - 1, 1, w - 2)
     moved = np.flatnonzero((r != rows) | (c != cols))
     if len(moved) == 0:
         return r, c
@@ -1011,8 +1011,8 @@ def _climb(
 
 def _bilinear(img: NDArray, r: NDArray, c: NDArray) -> NDArray:
     """``img`` at sub-pixel (row, col) points inside it, bilinear."""
-    r = np.clip(r, 0.0, img.shape[0] - 1.001)
-    c = np.clip(c, 0.0, img.shape[1] - 1.001)
+    r = clip(r, 0.0, img.shape[0] - 1.001)
+    c = clip(c, 0.0, img.shape[1] - 1.001)
     r0, c0 = r.astype(np.intp), c.astype(np.intp)
     fr, fc = r - r0, c - c0
     top = img[r0, c0] * (1.0 - fc) + img[r0, c0 + 1] * fc
@@ -1248,8 +1248,8 @@ def _refine(
         coef = (np.linalg.pinv(normal) @ rhs[:, :, None])[:, :, 0]
     _, b, c, e = coef.T
     curv = np.where(e < 0, e, -1e-9)  # a peak must curve down
-    dr = np.clip(-b / (2.0 * curv), -1.0, 1.0)
-    dc = np.clip(-c / (2.0 * curv), -1.0, 1.0)
+    dr = clip(-b / (2.0 * curv), -1.0, 1.0)
+    dc = clip(-c / (2.0 * curv), -1.0, 1.0)
     return rows + dr, cols + dc
 
 

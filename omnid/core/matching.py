@@ -59,7 +59,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import require
-from omnid.core.arrays import stable_argsort
+from omnid.core.arrays import clip, stable_argsort
 
 if TYPE_CHECKING:
     from omnid.core.calibration import Calibration
@@ -380,6 +380,7 @@ class BeamTracks:
     cell_x_mm: NDArray[np.float64]  # (K,) floor X in cell_order (the look-up's hot loop)
     cell_y_mm: NDArray[np.float64]  # (K,) floor Y in cell_order
     slope2: NDArray[np.float64]  # (K,) |s|² of each beam (for slope_sigma, per triple)
+    stereo_solve: NDArray[np.float64]  # (3, 4) pinv(A): (p, q, u) of a pair = this · m
     # the floor points binned in square cells of ``_CELL_MM`` (bands of Y, then X), sorted by
     # (band, X): a disk's neighbours are a few short runs of this order (_beams_near)
     cell_order: NDArray[np.intp]  # (K,) beams sorted by (band, X)
@@ -390,6 +391,8 @@ class BeamTracks:
 
     @classmethod
     def from_model(cls, rig: StereoRig, laser: LaserModel) -> BeamTracks:
+        from omnid.core.triangulate import best_design_matrix
+
         s, c = laser.slopes()
         f1, f2 = rig.cam1.f_over_k_px, rig.cam2.f_over_k_px
         y1, y2 = rig.cam1.y_mm, rig.cam2.y_mm
@@ -423,6 +426,7 @@ class BeamTracks:
             fl[cell_order, 0],
             fl[cell_order, 1],
             np.sum(s**2, axis=1),
+            np.asarray(np.linalg.pinv(best_design_matrix(rig)), dtype=np.float64),
             cell_order,
             cell_start,
             x_rank,
@@ -500,10 +504,10 @@ def _beams_near(
     x0, y0 = tr.cell_origin_mm
     n_bands, n_cols = tr.cell_shape
     r = radius + _EPS_MM
-    b_lo = np.clip(np.floor((y - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
-    b_hi = np.clip(np.floor((y + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
-    c_lo = np.clip(np.floor((x - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
-    c_hi = np.clip(np.floor((x + r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    b_lo = clip(np.floor((y - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    b_hi = clip(np.floor((y + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    c_lo = clip(np.floor((x - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    c_hi = clip(np.floor((x + r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
     qb, band = _expand_ranges(b_lo, b_hi + 1)  # (query, band) pairs
     row = band * n_cols
     # one run per (query, band): the cells c_lo … c_hi lie next to each other in cell order
@@ -535,8 +539,6 @@ def match_triples(
     settings: MatchSettings | None = None,
 ) -> TripleMatch:
     """The most likely set of (camera-1 dot, camera-2 dot, beam) triples (module docstring)."""
-    from omnid.core.triangulate import best_design_matrix
-
     s = settings or MatchSettings()
     d1, d2 = _as_dots(d1), _as_dots(d2)
     if len(d1) == 0 or len(d2) == 0 or len(laser) == 0:
@@ -560,8 +562,7 @@ def match_triples(
     off1 = rig.cam1.ideal_offsets(d1[:, :2]).T
     off2 = rig.cam2.ideal_offsets(d2[:, :2]).T
     m = np.vstack([np.take(off1, i, axis=1), np.take(off2, j, axis=1)])  # (4, pairs)
-    A = best_design_matrix(rig)
-    p_st, q_st, u_st = np.linalg.pinv(A) @ m  # (p, q, u) of each pair
+    p_st, q_st, u_st = tr.stereo_solve @ m  # (p, q, u) of each pair
     # 2. the beams such a point could lie on: project it from the source onto the floor
     o = tr.source_mm
     z = 1.0 / u_st
@@ -584,7 +585,7 @@ def match_triples(
     bb = np.sum(be * be, axis=0)
     u_lo = 1.0 / (H + s.dropoff_depth_mm)
     u_hi = 1.0 / max(s.near_depth_mm, o[2] + 1.0)
-    u = np.clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
+    u = clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
     r = mm - al - be * u
     sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)
     chi2 = np.sum(r * r, axis=0) / (sig_t * sig_t)

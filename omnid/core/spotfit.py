@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from omnid.core.arrays import stable_argsort
+from omnid.core.arrays import clip, stable_argsort
 
 #: Window half-size per spot sigma: the fit sees ±3 σ of each dot.
 WINDOW_PER_SIGMA = 3.0
@@ -210,8 +210,8 @@ def fit_spots(
     off = np.arange(-h, h + 1, dtype=np.float64)
     win_r = rows[:, None] + off[None, :]  # the window's pixel rows (n, size)
     win_c = cols[:, None] + off[None, :]
-    rr = np.clip(win_r.astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
-    cc_ = np.clip(win_c.astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
+    rr = clip(win_r.astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
+    cc_ = clip(win_c.astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
     inside = ((win_r >= 0) & (win_r < image.shape[0]))[:, :, None]
     inside = inside & ((win_c >= 0) & (win_c < image.shape[1]))[:, None, :]
     win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
@@ -333,10 +333,10 @@ def _update(
     d_mass, d_b0, d_s, d_r, d_br, d_c, d_bc = _gauss_newton_step(grad, pr, pc)
     new_mass = mass + d_mass
     safe = np.where(np.abs(new_mass) > 1e-9, new_mass, 1e-9)
-    step_r = np.clip(-d_r / safe, -MAX_STEP_PX, MAX_STEP_PX)
-    step_c = np.clip(-d_c / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    step_r = clip(-d_r / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    step_c = clip(-d_c / safe, -MAX_STEP_PX, MAX_STEP_PX)
     s_min, s_max = st.s_range
-    st.s[k] = np.clip(s * np.clip(1.0 + d_s / (safe * s), 0.75, 1.33), s_min, s_max)
+    st.s[k] = clip(s * clip(1.0 + d_s / (safe * s), 0.75, 1.33), s_min, s_max)
     st.mass[k] = new_mass
     br, bc = br + d_br, bc + d_bc
     st.br[k], st.bc[k] = br, bc
@@ -541,8 +541,8 @@ def _split_windows(
     ones = np.ones_like(off)
     dr = np.broadcast_to((off[:, None] * ones[None, :]).ravel(), (n, off.size**2))
     dc = np.broadcast_to((ones[:, None] * off[None, :]).ravel(), (n, off.size**2))
-    rr = np.clip(ir[:, None] + dr.astype(np.intp), 0, image.shape[0] - 1)
-    cc = np.clip(ic[:, None] + dc.astype(np.intp), 0, image.shape[1] - 1)
+    rr = clip(ir[:, None] + dr.astype(np.intp), 0, image.shape[0] - 1)
+    cc = clip(ic[:, None] + dc.astype(np.intp), 0, image.shape[1] - 1)
     return image[rr, cc].astype(np.float64), dr, dc, ir, ic
 
 
@@ -606,7 +606,7 @@ def two_spot_test(
             censored = None
     r0, c0 = r - ir, c - ic
     excess, theta = _excess(data, dr, dc)
-    half = np.clip(np.sqrt(np.maximum(excess, 0.0)), 0.3 * sigma_px, 1.5 * sigma_px)
+    half = clip(np.sqrt(np.maximum(excess, 0.0)), 0.3 * sigma_px, 1.5 * sigma_px)
     er, ec = np.cos(theta), np.sin(theta)
     top = data.max(axis=1)
     s = float(sigma_px)

@@ -347,12 +347,14 @@ def corridor(kind: RiderKind, seed: int) -> Trial:
 
 def along_wall(kind: RiderKind, seed: int) -> Trial:
     """A wall 150 mm beside the chair's right side (face at y = −500), 5 m long; the rider
-    drives along it (the joystick holding the line, the head straight on)."""
+    drives along it (the joystick holding the line, the head straight on), the first 1.4 m
+    straight as in the passages (at start-up the floor beside the tail is unseen: a correction
+    there swings the tail into it, refused)."""
     lateral, dth = _jitter(seed, 15.0, 1.5)
     wall = Box(-1500.0, 5000.0, -600.0, -500.0, 1000.0)
     course = _room((wall,), x_range=(-1200.0, 6000.0), y_range=(-600.0, 2500.0),
                    start=(0.0, lateral, dth), name="along a wall at 150 mm")  # fmt: skip
-    rider = LinePilot(kind, (0.0, 0.0), 0.0, until_x_mm=4200.0, start_s=0.7)
+    rider = LinePilot(kind, (0.0, 0.0), 0.0, until_x_mm=4200.0, start_s=0.7, straight_mm=1400.0)
     return Trial("along a wall at 150 mm", kind, seed, course, 40.0, rider, chair_for(seed),
                  hazard=(("box", 0),), opening=(0.0, 3800.0), goal_x_mm=3800.0,
                  response=False)  # fmt: skip

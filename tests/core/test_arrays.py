@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from omnid.core.arrays import median, stable_argsort
+from omnid.core.arrays import median, quartiles, stable_argsort
 
 
 def test_stable_argsort_is_numpys_stable_order() -> None:
@@ -22,8 +22,10 @@ def test_stable_argsort_is_numpys_stable_order() -> None:
             assert got.dtype == np.intp and np.array_equal(got, want)
 
 
-def test_median_is_numpys() -> None:
+def test_median_and_quartiles_are_numpys() -> None:
     rng = np.random.default_rng(6)
-    for n in (1, 2, 3, 10, 11, 999):
-        x = rng.standard_normal(n)
-        assert median(x) == float(np.median(x))
+    for n in (1, 2, 3, 4, 10, 11, 999):
+        for x in (rng.standard_normal(n), np.round(rng.standard_normal(n)).astype(np.float32)):
+            assert median(x) == float(np.median(x))
+            q = np.partition(x, (n // 4, n // 2))
+            assert np.array_equal(quartiles(x), q[[n // 4, n // 2]])
