@@ -84,7 +84,7 @@ import logging
 import math
 from dataclasses import dataclass
 from enum import Enum
-from typing import Any, Literal, overload
+from typing import Any, Literal, NamedTuple, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -336,10 +336,22 @@ def contact_path_s(
 #: which are drop-offs (N,) (``FreeSpaceMap.blocking_evidence``).
 Evidence = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
-#: A cached blocking sweep: (clearance mm, state, side intrusion mm, leading contact mm, its
-#: state, swing contact mm, its state) (:meth:`SafetyLayer._blocking_sweep`).
-_Sweep = tuple[float, CellState | None, float, float, CellState | None, float, CellState | None]
-_NO_SWEEP: _Sweep = (math.inf, None, 0.0, math.inf, None, math.inf, None)
+
+class _Sweep(NamedTuple):
+    """A cached blocking sweep (:meth:`SafetyLayer._blocking_sweep`): the first contact (mm) and
+    its state, the side intrusion (mm, :meth:`SafetyLayer._side_intrusion`), and the first
+    contact of the leading face and of the swing with their states."""
+
+    clearance_mm: float
+    state: CellState | None
+    side_mm: float
+    lead_mm: float
+    lead_state: CellState | None
+    swing_mm: float
+    swing_state: CellState | None
+
+
+_NO_SWEEP = _Sweep(math.inf, None, 0.0, math.inf, None, math.inf, None)
 
 
 def _first_contact(
@@ -378,6 +390,9 @@ class SafetyLayer:
         self._y1 = -self._y0
         # the chair itself (no margin): cells under it are not seen and not obstacles
         self._fx0, self._fx1 = -s.footprint_rear_mm, s.footprint_front_mm
+        # a swing this near (fastest point's travel) is refused: the stopping distance from
+        # the slowest speed the approach rules allow
+        self._swing_refuse_mm = self.swing_stop_mm(s.approach_min_speed_mm_s)
         self._fy1 = 0.5 * s.footprint_width_mm
         self._fy0 = -self._fy1
         corners = np.array(
@@ -478,22 +493,9 @@ class SafetyLayer:
         standing chair with a held command costs a dictionary lookup). :meth:`sweep_reference`
         is the slow sampled sweep this is tested against.
         """
-        clearance, state = self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
-        return clearance, state, self._sweep_unknown(grid, v_mm_s, omega_rad_s, clearance)
-
-    def _sweep_blocking(
-        self,
-        grid: OccupancyGrid,
-        v_mm_s: float,
-        omega_rad_s: float,
-        evidence: Evidence | None,
-        evidence_key: object,
-    ) -> tuple[float, CellState | None]:
-        """:meth:`sweep`'s clearance and blocking state (cached per map content and twist)."""
-        clearance, state = self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)[
-            :2
-        ]
-        return clearance, state
+        b = self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+        unknown = self._sweep_unknown(grid, v_mm_s, omega_rad_s, b.clearance_mm)
+        return b.clearance_mm, b.state, unknown
 
     def _blocking_sweep(
         self,
@@ -503,8 +505,8 @@ class SafetyLayer:
         evidence: Evidence | None,
         evidence_key: object,
     ) -> _Sweep:
-        """:meth:`_sweep_blocking`, for a straight forward twist the side intrusion of what it
-        meets (:meth:`_side_intrusion`; 0 otherwise), and the first contact of the leading face
+        """:meth:`sweep`'s clearance and blocking state, for a straight forward twist the side
+        intrusion of what it meets (:meth:`_side_intrusion`; 0 otherwise), and the first contact of the leading face
         and of the swing (:meth:`contacts`), cached together."""
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm  # speed of the fastest point
         if u <= 0.0:
@@ -521,8 +523,8 @@ class SafetyLayer:
         side = 0.0
         if math.isfinite(clearance) and omega_rad_s == 0.0 and v_mm_s > 0.0:
             side = self._side_intrusion(by, grow, sb)
-        lead = self._leading(bx, by, sb, v_mm_s, omega_rad_s, u, self._fx0, self._fx1)
-        result = (
+        lead = self._leading(bx, by, sb, v_mm_s, omega_rad_s, u)
+        result = _Sweep(
             clearance,
             state,
             side,
@@ -548,7 +550,8 @@ class SafetyLayer:
         driving forward, the rear reversing, none turning in place — and of the **swing** (the
         sides and the trailing face). ``inf, None`` where there is none (cached with
         :meth:`sweep`)."""
-        return self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)[3:]
+        b = self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+        return b.lead_mm, b.lead_state, b.swing_mm, b.swing_state
 
     def _leading(
         self,
@@ -558,12 +561,11 @@ class SafetyLayer:
         v_mm_s: float,
         omega_rad_s: float,
         u: float,
-        rear_mm: float,
-        front_mm: float,
     ) -> NDArray[np.bool_]:
         """Which contacts ``s_mm`` of the points (robot frame now) the leading face meets: where
-        the point lies, in the robot frame of the pose of contact, at or beyond ``front_mm``
-        (forward) or ``rear_mm`` (reverse); none for a turn in place."""
+        the point lies, in the robot frame of the pose of contact, at or beyond the footprint's
+        front (forward) or rear (reverse) without margins, so the margin strip counts as that face;
+        none for a turn in place."""
         fin = np.isfinite(s_mm)
         if v_mm_s == 0.0 or not np.any(fin):
             return np.zeros(len(px), dtype=bool)
@@ -574,7 +576,7 @@ class SafetyLayer:
             th = s * (omega_rad_s / u)
             r = v_mm_s / omega_rad_s
             xc = np.cos(th) * (px - r * np.sin(th)) + np.sin(th) * (py - r * (1.0 - np.cos(th)))
-        ahead = xc >= front_mm - 1e-6 if v_mm_s > 0.0 else xc <= rear_mm + 1e-6
+        ahead = xc >= self._fx1 - 1e-6 if v_mm_s > 0.0 else xc <= self._fx0 + 1e-6
         return np.asarray(fin & ahead)
 
     def swing_stop_mm(self, speed_mm_s: float) -> float:
@@ -618,7 +620,7 @@ class SafetyLayer:
         sweep: :meth:`_side_intrusion`)."""
         if not self._arc_radii_mm or v_mm_s <= 0.0:
             return 0.0
-        y = self._blocking_sweep(grid, v_mm_s, 0.0, evidence, evidence_key)[2]
+        y = self._blocking_sweep(grid, v_mm_s, 0.0, evidence, evidence_key).side_mm
         if abs(y) > self._arc_shift_mm:
             return 0.0
         return float(np.sign(y))
@@ -626,7 +628,7 @@ class SafetyLayer:
     def _sweep_unknown(
         self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float, clearance_mm: float
     ) -> float:
-        """:meth:`sweep`'s unknown fraction (after :meth:`_sweep_blocking` for this map)."""
+        """:meth:`sweep`'s unknown fraction (after :meth:`_blocking_sweep` for this map)."""
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
         if u <= self.settings.unknown_speed_mm_s:  # the fraction caps only what is faster
             return 0.0
@@ -802,7 +804,7 @@ class SafetyLayer:
         if v_mm_s > 0.0 and s.front_blind_mm > 0.0:
             blind = (px > self._fx1) & (px <= self._x1 + s.front_blind_mm + h)
             blind &= np.abs(py) <= self._y1 + h
-        lead = self._leading(px, py, s_mm, v_mm_s, omega_rad_s, u, self._fx0, self._fx1)
+        lead = self._leading(px, py, s_mm, v_mm_s, omega_rad_s, u)
         swing = ~blind & ~lead
         # the grid is in the robot frame: a cell's extent is its centre grown by half a cell;
         # against the footprint itself (the margin is for the position error of things seen)
@@ -868,7 +870,7 @@ class SafetyLayer:
         s = self.settings
         if s.escape_speed_mm_s <= 0.0:
             return False
-        self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)  # cached
+        self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)  # cached
         d = self.escape_gaps(grid, v_mm_s, omega_rad_s)
         if d.shape[1] == 0:
             return False  # nothing near, yet in the stop zone: not a pocket, keep the refusal
@@ -1167,12 +1169,12 @@ class SafetyLayer:
             caps.append(0.0)
             if beat_scale >= 0.0:
                 return None
-        clearance = self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)[0]
-        lead, lead_state, swing, swing_state = self.contacts(
-            grid, v_mm_s, omega_rad_s, evidence, evidence_key
-        )
+        b = self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+        clearance, lead, lead_state, swing, swing_state = (
+            b.clearance_mm, b.lead_mm, b.lead_state, b.swing_mm, b.swing_state
+        )  # fmt: skip
         lead_stop = lead <= s.stop_distance_mm
-        swing_stop = swing <= s.swing_buffer_mm + self.swing_stop_mm(s.approach_min_speed_mm_s)
+        swing_stop = swing <= s.swing_buffer_mm + self._swing_refuse_mm
         if lead_stop or swing_stop:
             drop = (lead_stop and lead_state is CellState.DROPOFF) or (
                 swing_stop and swing_state is CellState.DROPOFF
@@ -1213,9 +1215,7 @@ class SafetyLayer:
                 caps.append(creep)
         else:
             unseen_lead, unseen_swing = self.unknown_contacts(grid, v_mm_s, omega_rad_s)
-            if unseen_lead <= s.stop_distance_mm or unseen_swing <= self.swing_stop_mm(
-                s.approach_min_speed_mm_s
-            ):
+            if unseen_lead <= s.stop_distance_mm or unseen_swing <= self._swing_refuse_mm:
                 reasons.append(Reason.UNKNOWN_STOP)
                 caps.append(0.0)
             else:
