@@ -36,11 +36,16 @@ each was logged, and no memory growth: resident memory is sampled 90 times a run
 after a warm-up of a third of the run must stay under 100 kB per simulated minute (50 kB for
 the half hour; a leak of one small array per control step would be 50x that).
 
-Not met on this laser (issue 13): with ``--soak-minutes 30`` the chair is wedged after minute 10
-(reach 192 and 173 mm in the last two windows, rider seed 7): the liveness assertion fails there;
-the 5 minutes of CI (and 10) pass. Seed 7's half hour has three contacts (box 7, turning in place at
-17-33 mm/s wheel speed), duty 0 0.01-1.1 s after each; none was counted as a bump, none could be told by
-the clocks in time.
+Not met (issue 13), measured with the swing model (2026-12-02): ``--soak-minutes 30`` passes
+at rider seed 7 (19.5 m, reaches 2908/3796/2468 mm in the three windows, 2 contacts, 1 counted
+as a bump); seeds 3 and 11 (run by hand, same setup) wedge in the last window (reaches
+5201/205/279 and 2437/1836/0 mm). Seed 11's wedge: having crept over unseen floor, the tail's
+corner stands 10 mm from a wall that runs across behind it and a box is 50 mm ahead; every move
+the rider asks is refused, because the wall is tangent to the corner's circle in a turn in place
+(the gap changes only at second order, less than its points' 3 mm noise, so the gap to some
+point dips by more than ``escape_tolerance_mm``), reversing closes on the wall and forward arcs
+trade the margin to the box. Stuck as far as 3 mm-noisy evidence can tell (no phantom); the
+shipped policy (refuse the unseen) would not have crept there.
 """
 
 from __future__ import annotations
