@@ -966,7 +966,7 @@ def _one_spot(
     keep = np.ones(len(r), dtype=bool)
     i, j = spotfit.near_pairs(r, c, reach_px, sort=False)
     sel = (top[i] < top[j]) | ((top[i] == top[j]) & (i > j))  # i: the dimmer of the pair
-    i, j = i[sel], j[sel]
+    i, j = i.compress(sel), j.compress(sel)
     if len(i) == 0:
         return keep
     t = np.array([0.25, 0.5, 0.75])[:, None]
@@ -1066,24 +1066,25 @@ def _neighbour_pull(
     ri, ci = np.rint(r).astype(np.intp), np.rint(c).astype(np.intp)
     near = (np.abs(ri[i] - ri[j]) <= half) & (np.abs(ci[i] - ci[j]) <= half)
     is_close = np.zeros(n, dtype=bool)
-    is_close[i[near]] = True
+    is_close[i.compress(near)] = True
     close = np.flatnonzero(is_close)
     both = is_close[i] & is_close[j]
     if not both.any():
         return pull_r, pull_c, unresolved
     local = np.cumsum(is_close) - 1  # index among the close dots
-    i, j = local[i[both]], local[j[both]]
+    i, j = np.take(local, i.compress(both)), np.take(local, j.compress(both))
     m = len(close)
     pr, pc = r[close], c[close]
     t = np.abs(top[close]).astype(np.float64)
     t = np.maximum(t, 1e-6)
     cr, cc, amp = pr.copy(), pc.copy(), t.copy()
     neg_inv2v = -1.0 / (2.0 * filtered_var)
-    pr_i, pc_i, floor_t = pr[i], pc[i], 0.05 * t  # (loop invariants)
+    pr_i, pc_i, floor_t = np.take(pr, i), np.take(pc, i), 0.05 * t  # (loop invariants)
     step = np.zeros(m)
     for it in range(_PULL_ITERATIONS):
-        dr, dc = cr[j] - pr_i, cc[j] - pc_i
-        lj = amp[j] * np.exp((dr * dr + dc * dc) * neg_inv2v)  # neighbour j's light at p_i
+        dr, dc = np.take(cr, j) - pr_i, np.take(cc, j) - pc_i
+        # neighbour j's light at p_i
+        lj = np.take(amp, j) * np.exp((dr * dr + dc * dc) * neg_inv2v)
         er, ec = cr - pr, cc - pc
         own = np.exp((er * er + ec * ec) * neg_inv2v)
         sum_l = np.bincount(i, weights=lj, minlength=m)

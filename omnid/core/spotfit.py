@@ -156,8 +156,9 @@ def near_pairs(
     pos = np.arange(total) - np.repeat(first - lo, count)
     i = np.repeat(np.repeat(np.arange(n, dtype=np.intp), 9), count)
     j = order[pos].astype(np.intp)
-    keep = (i != j) & (np.abs(r[i] - r[j]) <= reach) & (np.abs(c[i] - c[j]) <= reach)
-    return i[keep], j[keep]
+    ri, rj, ci, cj = np.take(r, i), np.take(r, j), np.take(c, i), np.take(c, j)
+    keep = (i != j) & (np.abs(ri - rj) <= reach) & (np.abs(ci - cj) <= reach)
+    return i.compress(keep), j.compress(keep)
 
 
 #: The 7 basis functions of a dot's fit as sums of (row, column) index pairs into the per-axis
