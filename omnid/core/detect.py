@@ -419,9 +419,12 @@ def _background_half(
     low = cv2.blur(cv2.erode(small, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))), (k, k))
     # Noise of pyrDown's output: its 5x5 kernel's squared weights sum to (35/128)².
     lim = 2.0 * max(noise * 35.0 / 128.0, 0.25)
-    rest = clip(small - low, -lim, lim)
+    rest = np.subtract(small, low, dtype=np.float32)
+    np.maximum(rest, -lim, out=rest)
+    np.minimum(rest, lim, out=rest)
     k_bias = 2 * (_BIAS_RADIUS_PX // 2) + 1
-    return np.asarray(low + cv2.blur(rest, (k_bias, k_bias)), dtype=np.float32)
+    bias = cv2.blur(rest, (k_bias, k_bias))
+    return np.add(low, bias, out=bias, dtype=np.float32)
 
 
 def _box_of(
@@ -1081,19 +1084,32 @@ def _neighbour_pull(
     neg_inv2v = -1.0 / (2.0 * filtered_var)
     pr_i, pc_i, floor_t = np.take(pr, i), np.take(pc, i), 0.05 * t  # (loop invariants)
     step = np.zeros(m)
+    last = _PULL_ITERATIONS - 1
     for it in range(_PULL_ITERATIONS):
         dr, dc = np.take(cr, j) - pr_i, np.take(cc, j) - pc_i
         # neighbour j's light at p_i
-        lj = np.take(amp, j) * np.exp((dr * dr + dc * dc) * neg_inv2v)
-        er, ec = cr - pr, cc - pc
-        own = np.exp((er * er + ec * ec) * neg_inv2v)
+        q = dr * dr
+        q += dc * dc
+        q *= neg_inv2v
+        lj = np.take(amp, j) * np.exp(q, out=q)
         sum_l = np.bincount(i, weights=lj, minlength=m)
-        sum_r = np.bincount(i, weights=lj * dr, minlength=m)
-        sum_c = np.bincount(i, weights=lj * dc, minlength=m)
-        a_own = np.maximum(amp * own, floor_t)
+        sum_r = np.bincount(i, weights=np.multiply(lj, dr, out=dr), minlength=m)
+        sum_c = np.bincount(i, weights=np.multiply(lj, dc, out=dc), minlength=m)
+        if it == 0:  # (c = p: each dot's own light at p is its amplitude, exp(0) = 1)
+            own, a_own = np.ones(m), np.maximum(amp, floor_t)
+        else:
+            er, ec = cr - pr, cc - pc
+            er *= er
+            ec *= ec
+            er += ec
+            er *= neg_inv2v
+            own = np.exp(er, out=er)
+            a_own = np.maximum(amp * own, floor_t)
         new_r, new_c = pr - sum_r / a_own, pc - sum_c / a_own
-        if it == _PULL_ITERATIONS - 1:  # only the last step is judged
+        if it == last:  # only the last step is judged (and its amplitudes are not needed)
             step = np.hypot(new_r - cr, new_c - cc)
+            cr, cc = new_r, new_c
+            break
         cr, cc = new_r, new_c
         amp = np.maximum(t - sum_l, floor_t) / np.maximum(own, 1e-3)
     pull_r[close], pull_c[close] = pr - cr, pc - cc
