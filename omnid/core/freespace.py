@@ -565,7 +565,14 @@ class FreeSpaceMap:
         st = self.settings
         tol = st.carve_tolerance_mm
         pts = self._points
-        lo, hi = xy.min(axis=0) - 200.0, xy.max(axis=0) + 200.0
+        # the rays run from the source to the dots: the kept points to test lie anywhere between
+        # (the box of the dots alone missed a phantom between the mirrors and the nearest dots,
+        # in the band before the footrests — forever, the chair standing: docs/benchmarks.md)
+        src = _to_frame(
+            self._pose, np.array([[source_mm[0] + rig_x_offset_mm, -source_mm[1]]], np.float64)
+        )
+        ends = np.vstack([xy, src])
+        lo, hi = ends.min(axis=0) - 200.0, ends.max(axis=0) + 200.0
         sel = np.flatnonzero(
             (pts[:, 0] >= lo[0])
             & (pts[:, 0] <= hi[0])
