@@ -53,9 +53,11 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   obstacle point within ``carve_tolerance_mm`` of a later capture's ray, well before that ray's
   dot, was not there (a phantom of a wrong pairing lies exactly on a ray: the lattice's one-row
   ambiguity puts a whole row on a false plane); it is dropped, and a cell that loses its last
-  point becomes UNKNOWN (the ray says nothing of the floor below it). This reaches where
-  interpolated floor cannot: the band right in front of the footrests, which no floor dot of a
-  standing chair ever lands in.
+  point becomes UNKNOWN (the ray says nothing of the floor below it), as does a cell filled
+  between obstacle dots that no kept point could have made any more. The kept points tested are
+  those anywhere between the source and the dots. This reaches where interpolated floor cannot:
+  the band right in front of the footrests, which no floor dot of a standing chair ever lands
+  in.
 """
 
 from __future__ import annotations
