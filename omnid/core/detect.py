@@ -419,9 +419,12 @@ def _background_half(
     low = cv2.blur(cv2.erode(small, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))), (k, k))
     # Noise of pyrDown's output: its 5x5 kernel's squared weights sum to (35/128)².
     lim = 2.0 * max(noise * 35.0 / 128.0, 0.25)
-    rest = clip(small - low, -lim, lim)
+    rest = np.subtract(small, low, dtype=np.float32)
+    np.maximum(rest, -lim, out=rest)
+    np.minimum(rest, lim, out=rest)
     k_bias = 2 * (_BIAS_RADIUS_PX // 2) + 1
-    return np.asarray(low + cv2.blur(rest, (k_bias, k_bias)), dtype=np.float32)
+    bias = cv2.blur(rest, (k_bias, k_bias))
+    return np.add(low, bias, out=bias, dtype=np.float32)
 
 
 def _box_of(
@@ -966,7 +969,7 @@ def _one_spot(
     keep = np.ones(len(r), dtype=bool)
     i, j = spotfit.near_pairs(r, c, reach_px, sort=False)
     sel = (top[i] < top[j]) | ((top[i] == top[j]) & (i > j))  # i: the dimmer of the pair
-    i, j = i[sel], j[sel]
+    i, j = i.compress(sel), j.compress(sel)
     if len(i) == 0:
         return keep
     t = np.array([0.25, 0.5, 0.75])[:, None]
@@ -1066,33 +1069,47 @@ def _neighbour_pull(
     ri, ci = np.rint(r).astype(np.intp), np.rint(c).astype(np.intp)
     near = (np.abs(ri[i] - ri[j]) <= half) & (np.abs(ci[i] - ci[j]) <= half)
     is_close = np.zeros(n, dtype=bool)
-    is_close[i[near]] = True
+    is_close[i.compress(near)] = True
     close = np.flatnonzero(is_close)
     both = is_close[i] & is_close[j]
     if not both.any():
         return pull_r, pull_c, unresolved
     local = np.cumsum(is_close) - 1  # index among the close dots
-    i, j = local[i[both]], local[j[both]]
+    i, j = np.take(local, i.compress(both)), np.take(local, j.compress(both))
     m = len(close)
     pr, pc = r[close], c[close]
     t = np.abs(top[close]).astype(np.float64)
     t = np.maximum(t, 1e-6)
     cr, cc, amp = pr.copy(), pc.copy(), t.copy()
     neg_inv2v = -1.0 / (2.0 * filtered_var)
-    pr_i, pc_i, floor_t = pr[i], pc[i], 0.05 * t  # (loop invariants)
+    pr_i, pc_i, floor_t = np.take(pr, i), np.take(pc, i), 0.05 * t  # (loop invariants)
     step = np.zeros(m)
+    last = _PULL_ITERATIONS - 1
     for it in range(_PULL_ITERATIONS):
-        dr, dc = cr[j] - pr_i, cc[j] - pc_i
-        lj = amp[j] * np.exp((dr * dr + dc * dc) * neg_inv2v)  # neighbour j's light at p_i
-        er, ec = cr - pr, cc - pc
-        own = np.exp((er * er + ec * ec) * neg_inv2v)
+        dr, dc = np.take(cr, j) - pr_i, np.take(cc, j) - pc_i
+        # neighbour j's light at p_i
+        q = dr * dr
+        q += dc * dc
+        q *= neg_inv2v
+        lj = np.take(amp, j) * np.exp(q, out=q)
         sum_l = np.bincount(i, weights=lj, minlength=m)
-        sum_r = np.bincount(i, weights=lj * dr, minlength=m)
-        sum_c = np.bincount(i, weights=lj * dc, minlength=m)
-        a_own = np.maximum(amp * own, floor_t)
+        sum_r = np.bincount(i, weights=np.multiply(lj, dr, out=dr), minlength=m)
+        sum_c = np.bincount(i, weights=np.multiply(lj, dc, out=dc), minlength=m)
+        if it == 0:  # (c = p: each dot's own light at p is its amplitude, exp(0) = 1)
+            own, a_own = np.ones(m), np.maximum(amp, floor_t)
+        else:
+            er, ec = cr - pr, cc - pc
+            er *= er
+            ec *= ec
+            er += ec
+            er *= neg_inv2v
+            own = np.exp(er, out=er)
+            a_own = np.maximum(amp * own, floor_t)
         new_r, new_c = pr - sum_r / a_own, pc - sum_c / a_own
-        if it == _PULL_ITERATIONS - 1:  # only the last step is judged
+        if it == last:  # only the last step is judged (and its amplitudes are not needed)
             step = np.hypot(new_r - cr, new_c - cc)
+            cr, cc = new_r, new_c
+            break
         cr, cc = new_r, new_c
         amp = np.maximum(t - sum_l, floor_t) / np.maximum(own, 1e-3)
     pull_r[close], pull_c[close] = pr - cr, pc - cc

@@ -355,7 +355,7 @@ def stereo_candidates(
     disp = p1[:, 1][i] - p2[:, 1][j]  # D/Z
     deep = max_depth_mm if max_depth_mm is not None else rig.floor_depth_mm + 400.0
     ok = (disp >= rig.baseline_mm / deep) & (disp <= rig.baseline_mm / min_depth_mm)
-    return i[ok].astype(np.intp), j[ok].astype(np.intp)
+    return i.compress(ok).astype(np.intp), j.compress(ok).astype(np.intp)
 
 
 @dataclass(frozen=True)
@@ -517,7 +517,7 @@ def _beams_near(
     dy = tr.cell_y_mm[pos] - y[q]
     rq = radius[q]
     ok = dx * dx + dy * dy <= rq * rq
-    q, k = q[ok], tr.cell_order[pos[ok]]
+    q, k = q.compress(ok), np.take(tr.cell_order, pos.compress(ok))
     # (nearly sorted already: the merge sort runs through it)
     order = np.argsort(q * len(tr.x_rank) + tr.x_rank[k], kind="stable")
     return q[order], k[order]
@@ -605,8 +605,10 @@ def match_triples(
     )
     w = const - 0.5 * chi2
     keep = (w > 0) & (chi2 < s.gate_sigma**2 * 3.0)
-    a_ids, b_ids, k_ids = i[pq[keep]], j[pq[keep]], k[keep]
-    w, u, chi2, sig_t = w[keep], u[keep], chi2[keep], sig_t[keep]
+    pq_kept = pq.compress(keep)
+    a_ids, b_ids, k_ids = np.take(i, pq_kept), np.take(j, pq_kept), k.compress(keep)
+    w, u = w.compress(keep), u.compress(keep)
+    chi2, sig_t = chi2.compress(keep), sig_t.compress(keep)
     if len(w) == 0:
         return _empty_triples()
     chosen, comps, largest, inexact = _max_weight_packing(
@@ -684,22 +686,23 @@ def _dominant_triples(
         top2 = np.where(sizes > 1, e_w[np.minimum(starts + 1, len(e_node) - 1)], 0.0)
         s_e[entry] = np.where(first, top2[group], top1[group])
         s_t = s_cols[0][live] + s_cols[1][live] + s_cols[2][live]
-        dom = wp[live] > s_t
+        dom = np.take(wp, live) > s_t
         if not dom.any():
             break
-        taken = live[dom]
+        taken = live.compress(dom)
         sure.append(np.sort(perm[taken]))
         used = np.zeros(n_nodes, dtype=bool)
         for col in nd_cols:
             used[col[taken]] = True
         gone = used[nd_cols[0][live]] | used[nd_cols[1][live]] | used[nd_cols[2][live]]
-        alive[live[gone]] = False
-        live = live[~gone]
+        alive[live.compress(gone)] = False
+        live = live.compress(~gone)
         if len(live) == 0:
             break
         # (the few triples left: only their entries go on, in the same order)
         keep = alive[e_trip]
-        entry, e_node, e_trip, e_w = entry[keep], e_node[keep], e_trip[keep], e_w[keep]
+        entry, e_node, e_trip = entry.compress(keep), e_node.compress(keep), e_trip.compress(keep)
+        e_w = e_w.compress(keep)
     chosen = np.concatenate(sure) if sure else np.zeros(0, np.intp)
     return chosen.astype(np.intp), np.sort(perm[live])
 

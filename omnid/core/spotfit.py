@@ -152,12 +152,16 @@ def near_pairs(
     total = int(count.sum())
     if total == 0:
         return empty
-    first = np.cumsum(count) - count
+    ends = np.cumsum(count)
+    first = ends - count
     pos = np.arange(total) - np.repeat(first - lo, count)
-    i = np.repeat(np.repeat(np.arange(n, dtype=np.intp), 9), count)
+    # (each point's candidates: the difference of the running count at its 9 cells' ends)
+    per_point = np.diff(ends[8::9], prepend=0)
+    i = np.repeat(np.arange(n, dtype=np.intp), per_point)
     j = order[pos].astype(np.intp)
-    keep = (i != j) & (np.abs(r[i] - r[j]) <= reach) & (np.abs(c[i] - c[j]) <= reach)
-    return i[keep], j[keep]
+    ri, rj, ci, cj = np.take(r, i), np.take(r, j), np.take(c, i), np.take(c, j)
+    keep = (i != j) & (np.abs(ri - rj) <= reach) & (np.abs(ci - cj) <= reach)
+    return i.compress(keep), j.compress(keep)
 
 
 #: The 7 basis functions of a dot's fit as sums of (row, column) index pairs into the per-axis
