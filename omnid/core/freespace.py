@@ -53,9 +53,11 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   obstacle point within ``carve_tolerance_mm`` of a later capture's ray, well before that ray's
   dot, was not there (a phantom of a wrong pairing lies exactly on a ray: the lattice's one-row
   ambiguity puts a whole row on a false plane); it is dropped, and a cell that loses its last
-  point becomes UNKNOWN (the ray says nothing of the floor below it). This reaches where
-  interpolated floor cannot: the band right in front of the footrests, which no floor dot of a
-  standing chair ever lands in.
+  point becomes UNKNOWN (the ray says nothing of the floor below it), as does a cell filled
+  between obstacle dots that no kept point could have made any more. The kept points tested are
+  those anywhere between the source and the dots. This reaches where interpolated floor cannot:
+  the band right in front of the footrests, which no floor dot of a standing chair ever lands
+  in.
 """
 
 from __future__ import annotations
@@ -638,6 +640,59 @@ class FreeSpaceMap:
         empty = ~left[gi, gj] & (a.states[gi, gj] == CellState.OBSTACLE)
         a.states[gi[empty], gj[empty]] = CellState.UNKNOWN
         self._points = pts[keep]
+        self._unsupported(pts[gone, :2], left)
+
+    def _unsupported(self, carved_xy: NDArray[np.float64], with_points: NDArray[np.bool_]) -> None:
+        """Clear the obstacle cells filled between obstacle dots (a box top: no dot of their
+        own) that the carved points ``carved_xy`` (anchor mm) could have made and no kept point
+        still could: a triangle with no edge longer than ``obstacle_max_edge_mm`` lies within
+        that of each of its corners, so a cell farther than that (plus its half-diagonal) from
+        every kept point has lost every corner that filled it. Without this a phantom patch's
+        fill outlived its carved dots in the band before the footrests, where no floor dot
+        lands to clear it (the chair stood at obstacle_stop for as long as it stood)."""
+        reach = self.settings.obstacle_max_edge_mm
+        if reach <= 0.0 or len(carved_xy) == 0:
+            return
+        a = self._anchor
+        res = a.settings.resolution_mm
+        reach += 0.5 * res * math.sqrt(2.0)
+        nx, ny = a.states.shape
+        lo = np.floor(
+            (carved_xy.min(axis=0) - reach - (a.settings.x_min_mm, a.settings.y_min_mm)) / res
+        )
+        hi = np.floor(
+            (carved_xy.max(axis=0) + reach - (a.settings.x_min_mm, a.settings.y_min_mm)) / res
+        )
+        i0, j0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        i1, j1 = min(int(hi[0]) + 1, nx), min(int(hi[1]) + 1, ny)
+        if i1 <= i0 or j1 <= j0:
+            return
+        win = (slice(i0, i1), slice(j0, j1))
+        ii, jj = np.nonzero((a.states[win] == CellState.OBSTACLE) & ~with_points[win])
+        if len(ii) == 0:
+            return
+        xs, ys = a.cell_centers()
+        cx, cy = xs[ii + i0], ys[jj + j0]
+        # only those a carved point could have made
+        d2 = (cx[:, None] - carved_xy[None, :, 0]) ** 2 + (cy[:, None] - carved_xy[None, :, 1]) ** 2
+        near = np.flatnonzero(d2.min(axis=1) <= reach * reach)
+        if len(near) == 0:
+            return
+        cx, cy, ii, jj = cx[near], cy[near], ii[near], jj[near]
+        kept = self._points[:, :2]
+        box = (
+            (kept[:, 0] >= cx.min() - reach)
+            & (kept[:, 0] <= cx.max() + reach)
+            & (kept[:, 1] >= cy.min() - reach)
+            & (kept[:, 1] <= cy.max() + reach)
+        )
+        kept = kept[box]
+        supported = np.zeros(len(cx), dtype=bool)
+        for k in range(0, len(kept), 1024):
+            q = kept[k : k + 1024]
+            e2 = (cx[:, None] - q[None, :, 0]) ** 2 + (cy[:, None] - q[None, :, 1]) ** 2
+            supported |= e2.min(axis=1) <= reach * reach
+        a.states[ii[~supported] + i0, jj[~supported] + j0] = CellState.UNKNOWN
 
     def _prune_points(self) -> None:
         """Drop the points whose cell is no longer an obstacle, one per ``point_spacing_mm``
