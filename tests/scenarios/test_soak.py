@@ -41,11 +41,12 @@ at rider seed 7 (19.5 m, reaches 2908/3796/2468 mm in the three windows, 2 conta
 as a bump); seeds 3 and 11 (run by hand, same setup) wedge in the last window (reaches
 5201/205/279 and 2437/1836/0 mm). Seed 11's wedge: having crept over unseen floor, the tail's
 corner stands 10 mm from a wall that runs across behind it and a box is 50 mm ahead; every move
-the rider asks is refused, because the wall is tangent to the corner's circle in a turn in place
-(the gap changes only at second order, less than its points' 3 mm noise, so the gap to some
-point dips by more than ``escape_tolerance_mm``), reversing closes on the wall and forward arcs
-trade the margin to the box. Stuck as far as 3 mm-noisy evidence can tell (no phantom); the
-shipped policy (refuse the unseen) would not have crept there.
+the rider asks is refused: reversing closes on the wall, forward arcs trade the margin to the box,
+a left turn drives the corner into the wall, and the right turn that would open it fails the
+escape test point by point (the corner's noisy wall points dip the gap by more than
+``escape_tolerance_mm``; a wall point behind the tail comes nearer inside the margin).
+docs/benchmarks.md, "The soak wedge". The shipped policy (refuse the unseen) would not have
+crept there.
 """
 
 from __future__ import annotations
