@@ -673,25 +673,11 @@ class FreeSpaceMap:
             return
         xs, ys = a.cell_centers()
         cx, cy = xs[ii + i0], ys[jj + j0]
-        # only those a carved point could have made
-        d2 = (cx[:, None] - carved_xy[None, :, 0]) ** 2 + (cy[:, None] - carved_xy[None, :, 1]) ** 2
-        near = np.flatnonzero(d2.min(axis=1) <= reach * reach)
-        if len(near) == 0:
+        near = _any_within(cx, cy, carved_xy, reach)  # only those a carved point could have made
+        if not np.any(near):
             return
         cx, cy, ii, jj = cx[near], cy[near], ii[near], jj[near]
-        kept = self._points[:, :2]
-        box = (
-            (kept[:, 0] >= cx.min() - reach)
-            & (kept[:, 0] <= cx.max() + reach)
-            & (kept[:, 1] >= cy.min() - reach)
-            & (kept[:, 1] <= cy.max() + reach)
-        )
-        kept = kept[box]
-        supported = np.zeros(len(cx), dtype=bool)
-        for k in range(0, len(kept), 1024):
-            q = kept[k : k + 1024]
-            e2 = (cx[:, None] - q[None, :, 0]) ** 2 + (cy[:, None] - q[None, :, 1]) ** 2
-            supported |= e2.min(axis=1) <= reach * reach
+        supported = _any_within(cx, cy, self._points[:, :2], reach)
         a.states[ii[~supported] + i0, jj[~supported] + j0] = CellState.UNKNOWN
 
     def _prune_points(self) -> None:
@@ -1091,6 +1077,30 @@ def _depth_sigma(cov: NDArray[np.float64], n: int) -> NDArray[np.float64]:
         return np.zeros(n)
     var = np.asarray(cov[:, 2, 2], dtype=np.float64)
     return np.sqrt(np.where(np.isfinite(var) & (var > 0), var, 0.0))
+
+
+def _any_within(
+    x_mm: NDArray[np.float64], y_mm: NDArray[np.float64], pts: NDArray[np.float64], reach_mm: float
+) -> NDArray[np.bool_]:
+    """For each place (x_mm, y_mm): whether any of ``pts`` (M, 2) mm lies within ``reach_mm``.
+    Only the points in the places' bounding box grown by the reach are compared, 1024 at a time
+    (the places × points distances stay a few MB)."""
+    hit = np.zeros(len(x_mm), dtype=bool)
+    if len(x_mm) == 0:
+        return hit
+    box = (
+        (pts[:, 0] >= x_mm.min() - reach_mm)
+        & (pts[:, 0] <= x_mm.max() + reach_mm)
+        & (pts[:, 1] >= y_mm.min() - reach_mm)
+        & (pts[:, 1] <= y_mm.max() + reach_mm)
+    )
+    pts = pts[box]
+    r2 = reach_mm * reach_mm
+    for k in range(0, len(pts), 1024):
+        q = pts[k : k + 1024]
+        e2 = (x_mm[:, None] - q[None, :, 0]) ** 2 + (y_mm[:, None] - q[None, :, 1]) ** 2
+        hit |= e2.min(axis=1) <= r2
+    return hit
 
 
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:

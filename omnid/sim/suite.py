@@ -726,6 +726,11 @@ def false_stop_steps(
     return false
 
 
+def _run_starts(mask: NDArray[np.bool_]) -> NDArray[np.intp]:
+    """Indices where a run of True in ``mask`` begins (one per event of consecutive steps)."""
+    return np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8)])) == 1)
+
+
 def run_trial(
     trial: Trial,
     perception: str = "truth",
@@ -744,7 +749,7 @@ def run_trial(
     everything = _rects(trial.course)
     outline = _outline(everything)
     false = false_stop_steps(trace, st, outline, core)
-    starts = np.flatnonzero(np.diff(np.concatenate([[0], false.astype(np.int8)])) == 1)
+    starts = _run_starts(false)
     events = len(starts)
     unseen = sum("unknown_stop" in result.reasons_at(int(i)) for i in starts)
     period = float(np.median(np.diff(st[:, 0]))) if n > 1 else 0.02
@@ -809,17 +814,15 @@ def run_trial(
         # a safety stop: the rider asked to move and the safety layer limited it to zero
         refused = trace[:, 4] > 0
         refused[until:] = False
-        n_stops = int(
-            np.count_nonzero(np.diff(np.concatenate([[0], refused.astype(np.int8)])) == 1)
-        )
+        stop_starts = _run_starts(refused)
+        n_stops = len(stop_starts)
         stop_s = float(refused.sum()) * period
         for i in np.flatnonzero(refused):
             for r_name in result.reasons_at(int(i)):
                 stop_reasons[r_name] = stop_reasons.get(r_name, 0) + 1
         if n_stops:
             hz_p = _rects(trial.course, trial.hazard)
-            starts_p = np.flatnonzero(np.diff(np.concatenate([[0], refused.astype(np.int8)])) == 1)
-            at = [footprint_clearance_mm(poses[int(i)], hz_p) for i in starts_p]
+            at = [footprint_clearance_mm(poses[int(i)], hz_p) for i in stop_starts]
             stop_clear = min(at)
             near_stops = sum(a <= core.config.safety.slow_distance_mm for a in at)
         if np.any(inside):
