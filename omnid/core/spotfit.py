@@ -627,6 +627,7 @@ def blend_test(
     gy = h_ry @ _K_SPOT  # Σ w g(t) y
     gg = h_rr @ _K_PAIR  # Σ w R² exp(−(a − t)²), on the half-step grid
     mean_s, mean_y = (1.0 / s0)[:, None], (sy / s0)[:, None]
+    each = np.arange(n)[:, None]
 
     def two_spots(
         i1: NDArray[np.intp], i2: NDArray[np.intp]
@@ -634,7 +635,7 @@ def blend_test(
         """SSR and the two amplitudes of the hypotheses (positions i1 > i2 on _BLEND_T)."""
 
         def take(a: NDArray[np.float64], i: NDArray[np.intp]) -> NDArray[np.float64]:
-            return np.take_along_axis(a, np.broadcast_to(i, (n, i.shape[-1])), axis=1)
+            return a[:, i] if i.ndim == 1 else a[each, i]
 
         g_1, g_2 = take(gs, i1), take(gs, i2)
         a11 = take(gg, 2 * i1) - g_1 * g_1 * mean_s
