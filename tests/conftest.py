@@ -25,6 +25,7 @@ _LONG_FIRST = (
     "tests/record/test_bench.py",
     "tests/daemon/test_daemon_system.py",
     "tests/sim/test_sim_camera.py",
+    "tests/core/test_matching.py",  # its random-rigs fixture takes ~15 s to build
 )
 
 
