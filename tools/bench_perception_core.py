@@ -162,14 +162,13 @@ def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
     d1 = detect_dots(cap.mask1, cap.base1, "best")
     d2_ = detect_dots(cap.mask2, cap.base2, "best")
     m = match_triples(calib.rig, model, sigma, d1, d2_)
-    pixels = np.column_stack([d1[m.i1, :2], d2_[m.i2, :2]])
+    pixels = np.hstack([np.take(d1[:, :2], m.i1, axis=0), np.take(d2_[:, :2], m.i2, axis=0)])
     tr = _tracks(calib.rig, model)
 
     def on_beams() -> tuple[np.ndarray, np.ndarray]:
+        slope, cross = np.take(tr.slope, m.beam, axis=0), np.take(tr.cross_mm, m.beam, axis=0)
         slope_sigma = tr.slope_sigma(m.beam, m.inv_depth)
-        return triangulate_on_beams(
-            calib.rig, pixels, tr.slope[m.beam], tr.cross_mm[m.beam], slope_sigma, sigma
-        )
+        return triangulate_on_beams(calib.rig, pixels, slope, cross, slope_sigma, sigma)
 
     xyz_b, cov_b = on_beams()
     pc = PointCloud(xyz_b, cov_b, pixels, np.zeros(len(pixels), np.uint8), calib.floor_depth_mm)

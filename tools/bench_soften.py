@@ -3,7 +3,8 @@
     python tools/bench_soften.py                 # 2 simulated minutes, rider seed 7
     python tools/bench_soften.py --minutes 5 --seed 11
 
-The setup is tests/scenarios/test_soak.py's (truth perception, the default physical laser, the
+The setup is tests/scenarios/test_soak.py's (``omnid.sim.suite.soak_core`` and its course and
+settings: truth perception, the default physical laser, the
 cluttered room, the random joystick rider, escape moves at 40 mm/s, ``unknown_policy: creep``,
 the stationary capture). ``SafetyLayer.check`` and ``SafetyLayer.soften`` are wrapped with a
 ``perf_counter`` timer (the same process, no profiler overhead); printed: wall time of the run,
@@ -16,21 +17,14 @@ at the same load (the load average is printed).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
-import sys
 import time
-from pathlib import Path
+from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "scenarios"))
-
-from scenario_helpers import make_core, room
-
-from omnid.daemon.core import ControlCore
 from omnid.daemon.safety import Reason, SafetyLayer
 from omnid.sim.rider import random_ride
-from omnid.sim.simulator import SimSettings, Simulator
-from omnid.sim.suite import ROOM_BOXES, ROOM_DROP
+from omnid.sim.simulator import Simulator
+from omnid.sim.suite import soak_core, soak_course, soak_settings
 
 
 def main() -> None:
@@ -76,30 +70,14 @@ def main() -> None:
 
     SafetyLayer.check, SafetyLayer.soften, SafetyLayer._limit = check, soften, limit  # type: ignore[method-assign]
 
-    core = make_core(joystick=True)
-    cfg = core.config
-    safety = dataclasses.replace(
-        cfg.safety, escape_speed_mm_s=40.0, unknown_policy="creep", perception_timeout_s=1.5
-    )
+    changes: dict[str, Any] = {}
     for item in args.set:
         key, _, value = item.partition("=")
-        old = getattr(safety, key)
-        safety = dataclasses.replace(safety, **{key: type(old)(value)})
-    perception = dataclasses.replace(cfg.perception, capture="stationary")
-    core = ControlCore(dataclasses.replace(cfg, safety=safety, perception=perception))
-    settings = SimSettings(
-        perception="truth",
-        physics_dt_s=0.02,
-        tilt_period_s=0.02,
-        record_period_s=0.2,
-        record_seen=False,
-        stop_on_contact=False,
-    )
+        old = getattr(soak_core().config.safety, key)
+        changes[key] = type(old)(value)
+    core = soak_core(changes)
     sim = Simulator(
-        room(ROOM_BOXES, (ROOM_DROP,), length_mm=8000.0),
-        core,
-        settings,
-        joystick=random_ride(args.seed, duration_s),
+        soak_course(), core, soak_settings(), joystick=random_ride(args.seed, duration_s)
     )
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()

@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
 
     fmap.update = spy_update  # type: ignore[method-assign]
     result = sim.run(trial.duration_s)
-    trace = np.array(core.trace).reshape(-1, 6)
+    trace = np.array(core.trace).reshape(len(core.trace), -1)
     st = result.steps[: len(trace)]
 
     def decision_at(t: float) -> tuple[bool, str, float]:

@@ -271,8 +271,9 @@ def suite(args: argparse.Namespace) -> int:
           f"perception {args.perception}, safety changes {changes or 'none'}", flush=True)  # fmt: skip
     print("| scenario | rider | runs | contacts | falls | false stops (unseen) | per 10 min "
           "| closest (median, least) | stopped at | stop → standstill | hazard → first limit "
-          "(median, worst) | through (slowest in it) | wall |")  # fmt: skip
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "(median, worst) | through | safety stops before through (s; reasons at least clearance) "
+          "| slowest allowed in it | rider's own pauses/turns in it | wall |")  # fmt: skip
+    print("| --- " * 16 + "|")
     failed = False
     w_all = time.perf_counter()
     for name in names:
@@ -295,13 +296,25 @@ def suite(args: argparse.Namespace) -> int:
             lim = [r.hazard_to_limit_s for r in rows]
             still = [r.stop_to_standstill_s for r in rows]
             passed = [r for r in rows if r.passed is not None]
-            through = "—"
+            through = stopped = allowed = own = "—"
             if passed:
                 slowest = [r.min_speed_in_opening_mm_s for r in passed if r.passed]
-                stood = sum(r.stood_in_opening for r in passed)
                 through = (f"{sum(bool(r.passed) for r in passed)}/{len(passed)} "
-                           f"({_fmt(min(slowest) if slowest else math.nan, ' mm/s')}"
-                           f"{f', stood in it {stood}x' if stood else ''})")  # fmt: skip
+                           f"(true slowest {_fmt(min(slowest) if slowest else math.nan, ' mm/s')})")  # fmt: skip
+                reasons: dict[str, int] = {}
+                for r in passed:
+                    for k, v in r.safety_stop_reasons.items():
+                        reasons[k] = reasons.get(k, 0) + v
+                clear = [r.safety_stop_clearance_mm for r in passed if r.safety_stops]
+                stopped = (f"{sum(r.safety_stops for r in passed)}, at the door "
+                           f"{sum(r.safety_stops_at_door for r in passed)} "
+                           f"({sum(r.safety_stop_s for r in passed):.1f} s"
+                           + (f"; {', '.join(sorted(reasons))} at "
+                              f"{_fmt(min(clear), ' mm')}" if clear else "") + ")")  # fmt: skip
+                fast = [r.min_allowed_in_opening_mm_s for r in passed
+                        if not math.isnan(r.min_allowed_in_opening_mm_s)]  # fmt: skip
+                allowed = _fmt(min(fast, default=math.nan), " mm/s")
+                own = f"{sum(r.rider_own_s for r in passed):.1f} s"
             finite = [x for x in lim if math.isfinite(x)]
             print(
                 f"| {name} | {rider} | {len(rows)} | {contacts} | {falls} "
@@ -310,7 +323,7 @@ def suite(args: argparse.Namespace) -> int:
                 f"| {_fmt(_median(stops), ' mm')} "
                 f"| {_fmt(_median(still), ' s', 2)} "
                 f"| {_fmt(_median(lim), ' s', 2)}, {_fmt(max(finite) if finite else math.nan, ' s', 2)} "
-                f"| {through} | {sum(r.wall_s for r in rows):.0f} s |",
+                f"| {through} | {stopped} | {allowed} | {own} | {sum(r.wall_s for r in rows):.0f} s |",
                 flush=True,
             )  # fmt: skip
     print(f"\ntotal wall time {time.perf_counter() - w_all:.0f} s")

@@ -53,9 +53,11 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
   obstacle point within ``carve_tolerance_mm`` of a later capture's ray, well before that ray's
   dot, was not there (a phantom of a wrong pairing lies exactly on a ray: the lattice's one-row
   ambiguity puts a whole row on a false plane); it is dropped, and a cell that loses its last
-  point becomes UNKNOWN (the ray says nothing of the floor below it). This reaches where
-  interpolated floor cannot: the band right in front of the footrests, which no floor dot of a
-  standing chair ever lands in.
+  point becomes UNKNOWN (the ray says nothing of the floor below it), as does a cell filled
+  between obstacle dots that no kept point could have made any more. The kept points tested are
+  those anywhere between the source and the dots. This reaches where interpolated floor cannot:
+  the band right in front of the footrests, which no floor dot of a standing chair ever lands
+  in.
 """
 
 from __future__ import annotations
@@ -565,7 +567,14 @@ class FreeSpaceMap:
         st = self.settings
         tol = st.carve_tolerance_mm
         pts = self._points
-        lo, hi = xy.min(axis=0) - 200.0, xy.max(axis=0) + 200.0
+        # the rays run from the source to the dots: the kept points to test lie anywhere between
+        # (the box of the dots alone missed a phantom between the mirrors and the nearest dots,
+        # in the band before the footrests — forever, the chair standing: docs/benchmarks.md)
+        src = _to_frame(
+            self._pose, np.array([[source_mm[0] + rig_x_offset_mm, -source_mm[1]]], np.float64)
+        )
+        ends = np.vstack([xy, src])
+        lo, hi = ends.min(axis=0) - 200.0, ends.max(axis=0) + 200.0
         sel = np.flatnonzero(
             (pts[:, 0] >= lo[0])
             & (pts[:, 0] <= hi[0])
@@ -631,6 +640,45 @@ class FreeSpaceMap:
         empty = ~left[gi, gj] & (a.states[gi, gj] == CellState.OBSTACLE)
         a.states[gi[empty], gj[empty]] = CellState.UNKNOWN
         self._points = pts[keep]
+        self._unsupported(pts[gone, :2], left)
+
+    def _unsupported(self, carved_xy: NDArray[np.float64], with_points: NDArray[np.bool_]) -> None:
+        """Clear the obstacle cells filled between obstacle dots (a box top: no dot of their
+        own) that the carved points ``carved_xy`` (anchor mm) could have made and no kept point
+        still could: a triangle with no edge longer than ``obstacle_max_edge_mm`` lies within
+        that of each of its corners, so a cell farther than that (plus its half-diagonal) from
+        every kept point has lost every corner that filled it. Without this a phantom patch's
+        fill outlived its carved dots in the band before the footrests, where no floor dot
+        lands to clear it (the chair stood at obstacle_stop for as long as it stood)."""
+        reach = self.settings.obstacle_max_edge_mm
+        if reach <= 0.0 or len(carved_xy) == 0:
+            return
+        a = self._anchor
+        res = a.settings.resolution_mm
+        reach += 0.5 * res * math.sqrt(2.0)
+        nx, ny = a.states.shape
+        lo = np.floor(
+            (carved_xy.min(axis=0) - reach - (a.settings.x_min_mm, a.settings.y_min_mm)) / res
+        )
+        hi = np.floor(
+            (carved_xy.max(axis=0) + reach - (a.settings.x_min_mm, a.settings.y_min_mm)) / res
+        )
+        i0, j0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        i1, j1 = min(int(hi[0]) + 1, nx), min(int(hi[1]) + 1, ny)
+        if i1 <= i0 or j1 <= j0:
+            return
+        win = (slice(i0, i1), slice(j0, j1))
+        ii, jj = np.nonzero((a.states[win] == CellState.OBSTACLE) & ~with_points[win])
+        if len(ii) == 0:
+            return
+        xs, ys = a.cell_centers()
+        cx, cy = xs[ii + i0], ys[jj + j0]
+        near = _any_within(cx, cy, carved_xy, reach)  # only those a carved point could have made
+        if not np.any(near):
+            return
+        cx, cy, ii, jj = cx[near], cy[near], ii[near], jj[near]
+        supported = _any_within(cx, cy, self._points[:, :2], reach)
+        a.states[ii[~supported] + i0, jj[~supported] + j0] = CellState.UNKNOWN
 
     def _prune_points(self) -> None:
         """Drop the points whose cell is no longer an obstacle, one per ``point_spacing_mm``
@@ -1031,11 +1079,38 @@ def _depth_sigma(cov: NDArray[np.float64], n: int) -> NDArray[np.float64]:
     return np.sqrt(np.where(np.isfinite(var) & (var > 0), var, 0.0))
 
 
+def _any_within(
+    x_mm: NDArray[np.float64], y_mm: NDArray[np.float64], pts: NDArray[np.float64], reach_mm: float
+) -> NDArray[np.bool_]:
+    """For each place (x_mm, y_mm): whether any of ``pts`` (M, 2) mm lies within ``reach_mm``.
+    Only the points in the places' bounding box grown by the reach are compared, 1024 at a time
+    (the places × points distances stay a few MB)."""
+    hit = np.zeros(len(x_mm), dtype=bool)
+    if len(x_mm) == 0:
+        return hit
+    box = (
+        (pts[:, 0] >= x_mm.min() - reach_mm)
+        & (pts[:, 0] <= x_mm.max() + reach_mm)
+        & (pts[:, 1] >= y_mm.min() - reach_mm)
+        & (pts[:, 1] <= y_mm.max() + reach_mm)
+    )
+    pts = pts[box]
+    r2 = reach_mm * reach_mm
+    for k in range(0, len(pts), 1024):
+        q = pts[k : k + 1024]
+        e2 = (x_mm[:, None] - q[None, :, 0]) ** 2 + (y_mm[:, None] - q[None, :, 1]) ** 2
+        hit |= e2.min(axis=1) <= r2
+    return hit
+
+
 def _delaunay(xy: NDArray[np.float64]) -> NDArray[np.intp]:
-    """Delaunay triangles (T, 3) of indices into 2-D points ``xy`` (N, 2) (cv2.Subdiv2D)."""
+    """Delaunay triangles (T, 3) of indices into 2-D points ``xy`` (N, 2) (cv2.Subdiv2D).
+    The points are snapped to 1/16 mm first (exact in float32 on the map's scale): Subdiv2D
+    builds a zero-area triangle from two points a rounding error apart (6e-24 mm) and then
+    fails to locate the next point; snapped, they are one vertex."""
     import cv2
 
-    pts = xy.astype(np.float32)
+    pts = (np.round(xy * 16.0) / 16.0).astype(np.float32)
     lo = pts.min(axis=0) - 10.0
     hi = pts.max(axis=0) + 10.0
     sub = cv2.Subdiv2D((float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])))

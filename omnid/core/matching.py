@@ -59,6 +59,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import require
+from omnid.core.arrays import clip, stable_argsort
 
 if TYPE_CHECKING:
     from omnid.core.calibration import Calibration
@@ -162,7 +163,7 @@ def _candidates_by_row(
     rows1: NDArray[np.float64], rows2: NDArray[np.float64], tol: float
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """All index pairs (i, j) with |rows1[i] − rows2[j]| <= tol (sorting, no N×M matrix)."""
-    order = np.argsort(rows2, kind="stable")
+    order = stable_argsort(rows2)
     srt = rows2[order]
     lo = np.searchsorted(srt, rows1 - tol, side="left")
     hi = np.searchsorted(srt, rows1 + tol, side="right")
@@ -351,10 +352,10 @@ def stereo_candidates(
     p1 = rig.cam1.ray_slopes(d1[:, :2])
     p2 = rig.cam2.ray_slopes(d2[:, :2])
     i, j = _candidates_by_row(p1[:, 0], p2[:, 0], row_tol_px / f)
-    disp = p1[i, 1] - p2[j, 1]  # D/Z
+    disp = p1[:, 1][i] - p2[:, 1][j]  # D/Z
     deep = max_depth_mm if max_depth_mm is not None else rig.floor_depth_mm + 400.0
     ok = (disp >= rig.baseline_mm / deep) & (disp <= rig.baseline_mm / min_depth_mm)
-    return i[ok].astype(np.intp), j[ok].astype(np.intp)
+    return i.compress(ok).astype(np.intp), j.compress(ok).astype(np.intp)
 
 
 @dataclass(frozen=True)
@@ -363,8 +364,9 @@ class BeamTracks:
     m(u) = alpha + beta·u with m = (x1, y1, x2, y2) ideal offsets, px (see
     :class:`~omnid.core.laser.LaserModel`), and what makes the tracks uncertain."""
 
-    alpha: NDArray[np.float64]  # (K, 4) px
-    beta: NDArray[np.float64]  # (K, 4) px·mm
+    # (4, K): coordinate first (numpy works ~5x slower along short rows)
+    alpha: NDArray[np.float64]  # (4, K) px
+    beta: NDArray[np.float64]  # (4, K) px·mm
     slope: NDArray[np.float64]  # (K, 2) s
     cross_mm: NDArray[np.float64]  # (K, 2) c
     floor_sigma_mm: NDArray[np.float64]  # (K,)
@@ -375,9 +377,10 @@ class BeamTracks:
     x_order: NDArray[np.intp]  # beams sorted by floor X
     floor_x_sorted: NDArray[np.float64]
     floor_mm: NDArray[np.float64]  # (K, 3)
-    floor_x_mm: NDArray[np.float64]  # (K,) floor_mm[:, 0], contiguous (the look-up's hot loop)
-    floor_y_mm: NDArray[np.float64]  # (K,) floor_mm[:, 1]
+    cell_x_mm: NDArray[np.float64]  # (K,) floor X in cell_order (the look-up's hot loop)
+    cell_y_mm: NDArray[np.float64]  # (K,) floor Y in cell_order
     slope2: NDArray[np.float64]  # (K,) |s|² of each beam (for slope_sigma, per triple)
+    stereo_solve: NDArray[np.float64]  # (3, 4) pinv(A): (p, q, u) of a pair = this · m
     # the floor points binned in square cells of ``_CELL_MM`` (bands of Y, then X), sorted by
     # (band, X): a disk's neighbours are a few short runs of this order (_beams_near)
     cell_order: NDArray[np.intp]  # (K,) beams sorted by (band, X)
@@ -388,13 +391,13 @@ class BeamTracks:
 
     @classmethod
     def from_model(cls, rig: StereoRig, laser: LaserModel) -> BeamTracks:
+        from omnid.core.triangulate import best_design_matrix
+
         s, c = laser.slopes()
         f1, f2 = rig.cam1.f_over_k_px, rig.cam2.f_over_k_px
         y1, y2 = rig.cam1.y_mm, rig.cam2.y_mm
-        alpha = np.column_stack([-f1 * s[:, 0], f1 * s[:, 1], -f2 * s[:, 0], f2 * s[:, 1]])
-        beta = np.column_stack(
-            [-f1 * c[:, 0], f1 * (c[:, 1] - y1), -f2 * c[:, 0], f2 * (c[:, 1] - y2)]
-        )
+        alpha = np.array([-f1 * s[:, 0], f1 * s[:, 1], -f2 * s[:, 0], f2 * s[:, 1]])
+        beta = np.array([-f1 * c[:, 0], f1 * (c[:, 1] - y1), -f2 * c[:, 0], f2 * (c[:, 1] - y2)])
         fl = np.asarray(laser.floor_mm, dtype=np.float64)
         order = np.argsort(fl[:, 0], kind="stable").astype(np.intp)
         x_rank = np.empty(len(order), np.intp)
@@ -420,9 +423,10 @@ class BeamTracks:
             order,
             laser.floor_mm[order, 0],
             np.asarray(laser.floor_mm),
-            np.ascontiguousarray(fl[:, 0]),
-            np.ascontiguousarray(fl[:, 1]),
+            fl[cell_order, 0],
+            fl[cell_order, 1],
             np.sum(s**2, axis=1),
+            np.asarray(np.linalg.pinv(best_design_matrix(rig)), dtype=np.float64),
             cell_order,
             cell_start,
             x_rank,
@@ -492,29 +496,29 @@ def _empty_triples() -> TripleMatch:
 
 
 def _beams_near(
-    tr: BeamTracks, xy: NDArray[np.float64], radius: NDArray[np.float64]
+    tr: BeamTracks, x: NDArray[np.float64], y: NDArray[np.float64], radius: NDArray[np.float64]
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """(query, beam) for every beam whose floor point lies within ``radius`` of ``xy``, sorted
+    """(query, beam) for every beam whose floor point lies within ``radius`` of (``x``, ``y``), sorted
     by query, then by the beam's floor X. Searched in the cells the disk's bounding square
     touches (a superset, widened by ``_EPS_MM``), then tested exactly."""
     x0, y0 = tr.cell_origin_mm
     n_bands, n_cols = tr.cell_shape
     r = radius + _EPS_MM
-    b_lo = np.clip(np.floor((xy[:, 1] - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
-    b_hi = np.clip(np.floor((xy[:, 1] + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
-    c_lo = np.clip(np.floor((xy[:, 0] - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
-    c_hi = np.clip(np.floor((xy[:, 0] + r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    b_lo = clip(np.floor((y - r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    b_hi = clip(np.floor((y + r - y0) / _CELL_MM), 0, n_bands - 1).astype(np.intp)
+    c_lo = clip(np.floor((x - r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
+    c_hi = clip(np.floor((x + r - x0) / _CELL_MM), 0, n_cols - 1).astype(np.intp)
     qb, band = _expand_ranges(b_lo, b_hi + 1)  # (query, band) pairs
     row = band * n_cols
     # one run per (query, band): the cells c_lo … c_hi lie next to each other in cell order
     own, pos = _expand_ranges(tr.cell_start[row + c_lo[qb]], tr.cell_start[row + c_hi[qb] + 1])
     q = qb[own]
-    k = tr.cell_order[pos]
-    dx = tr.floor_x_mm[k] - xy[q, 0]
-    dy = tr.floor_y_mm[k] - xy[q, 1]
+    dx = tr.cell_x_mm[pos] - x[q]
+    dy = tr.cell_y_mm[pos] - y[q]
     rq = radius[q]
     ok = dx * dx + dy * dy <= rq * rq
-    q, k = q[ok], k[ok]
+    q, k = q.compress(ok), np.take(tr.cell_order, pos.compress(ok))
+    # (nearly sorted already: the merge sort runs through it)
     order = np.argsort(q * len(tr.x_rank) + tr.x_rank[k], kind="stable")
     return q[order], k[order]
 
@@ -535,8 +539,6 @@ def match_triples(
     settings: MatchSettings | None = None,
 ) -> TripleMatch:
     """The most likely set of (camera-1 dot, camera-2 dot, beam) triples (module docstring)."""
-    from omnid.core.triangulate import best_design_matrix
-
     s = settings or MatchSettings()
     d1, d2 = _as_dots(d1), _as_dots(d2)
     if len(d1) == 0 or len(d2) == 0 or len(laser) == 0:
@@ -555,36 +557,38 @@ def match_triples(
     )
     if len(i) == 0:
         return _empty_triples()
-    off1, off2 = rig.cam1.ideal_offsets(d1[:, :2]), rig.cam2.ideal_offsets(d2[:, :2])
-    m = np.hstack([off1[i], off2[j]])  # per dot, then per pair
-    A = best_design_matrix(rig)
-    theta = m @ np.linalg.pinv(A).T  # (p, q, u) of each pair
-    u_st = theta[:, 2]
+    # (x1, y1, x2, y2) of each pair, coordinate first as below: numpy works ~5x slower along
+    # short rows (and indexes the rows of a 2-D array ~10x slower)
+    off1 = rig.cam1.ideal_offsets(d1[:, :2]).T
+    off2 = rig.cam2.ideal_offsets(d2[:, :2]).T
+    m = np.vstack([np.take(off1, i, axis=1), np.take(off2, j, axis=1)])  # (4, pairs)
+    p_st, q_st, u_st = tr.stereo_solve @ m  # (p, q, u) of each pair
     # 2. the beams such a point could lie on: project it from the source onto the floor
     o = tr.source_mm
     z = 1.0 / u_st
     lever = (H - o[2]) / (z - o[2])
-    xy = o[None, :2] + (theta[:, :2] * z[:, None] - o[None, :2]) * lever[:, None]
+    x_fl = o[0] + (p_st * z - o[0]) * lever
+    y_fl = o[1] + (q_st * z - o[1]) * lever
     f = float(np.mean(tr.f_px))
-    s_abs = np.hypot(theta[:, 0], theta[:, 1])
+    s_abs = np.hypot(p_st, q_st)
     sz = z * z * math.sqrt(2.0) * sig / (f * rig.baseline_mm)
     sig_q = lever * np.hypot(sig * z / f, s_abs * sz)
     so = tr.source_sigma_mm
     sig_o = np.abs(lever - 1.0) * np.sqrt(0.5 * (so[0] ** 2 + so[1] ** 2) + s_abs**2 * so[2] ** 2)
     radius = s.gate_sigma * np.sqrt(sig_q**2 + sig_o**2 + np.max(tr.floor_sigma_mm) ** 2) + 1.0
-    pq, k = _beams_near(tr, xy, radius)
+    pq, k = _beams_near(tr, x_fl, y_fl, radius)
     if len(pq) == 0:
         return _empty_triples()
     # 3. each triple's least-squares depth along its beam and residual (3 degrees of freedom)
-    mm = m[pq]
-    al, be = tr.alpha[k], tr.beta[k]
-    bb = np.sum(be * be, axis=1)
+    mm = np.take(m, pq, axis=1)
+    al, be = np.take(tr.alpha, k, axis=1), np.take(tr.beta, k, axis=1)
+    bb = np.sum(be * be, axis=0)
     u_lo = 1.0 / (H + s.dropoff_depth_mm)
     u_hi = 1.0 / max(s.near_depth_mm, o[2] + 1.0)
-    u = np.clip(np.sum((mm - al) * be, axis=1) / bb, u_lo, u_hi)
-    r = mm - al - be * u[:, None]
+    u = clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
+    r = mm - al - be * u
     sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)
-    chi2 = np.sum(r * r, axis=1) / (sig_t * sig_t)
+    chi2 = np.sum(r * r, axis=0) / (sig_t * sig_t)
     # 4. weight: log-likelihood ratio of the triple against leaving its dots unpaired and its
     # beam unseen (module docstring); only triples worth taking enter the assignment
     n1, n2 = len(d1), len(d2)
@@ -601,8 +605,10 @@ def match_triples(
     )
     w = const - 0.5 * chi2
     keep = (w > 0) & (chi2 < s.gate_sigma**2 * 3.0)
-    a_ids, b_ids, k_ids = i[pq[keep]], j[pq[keep]], k[keep]
-    w, u, chi2, sig_t = w[keep], u[keep], chi2[keep], sig_t[keep]
+    pq_kept = pq.compress(keep)
+    a_ids, b_ids, k_ids = np.take(i, pq_kept), np.take(j, pq_kept), k.compress(keep)
+    w, u = w.compress(keep), u.compress(keep)
+    chi2, sig_t = chi2.compress(keep), sig_t.compress(keep)
     if len(w) == 0:
         return _empty_triples()
     chosen, comps, largest, inexact = _max_weight_packing(
@@ -658,40 +664,47 @@ def _dominant_triples(
     # Triples heaviest first (ties by index); their node entries sorted by node once (stable:
     # each node's triples stay heaviest first). Every round then only drops the entries of
     # the triples gone: what is left is still in that order, so no round sorts again.
-    perm = np.argsort(-w, kind="stable").astype(np.intp)
-    wp, ndp = w[perm], nodes[perm]
+    perm = stable_argsort(-w)
+    wp, ndp = w[perm], np.take(nodes, perm, axis=0)
     flat = ndp.ravel()  # (3T,) entry e belongs to triple e // 3 (in perm's order)
-    entry = np.argsort(flat, kind="stable").astype(np.intp)
+    entry = stable_argsort(flat)
     e_node, e_trip = flat[entry], entry // 3
     e_w = wp[e_trip]
     alive = np.ones(t_all, dtype=bool)
+    live = np.arange(t_all)  # the open triples (in perm's order), and below their entries
     s_e = np.empty(3 * t_all)  # per entry: the largest other weight at its node
+    s_cols = [s_e[c::3] for c in range(3)]  # (per column: numpy is slow along short rows)
+    nd_cols = [ndp[:, c] for c in range(3)]
     sure: list[NDArray[np.intp]] = []
     n_nodes = int(nodes.max()) + 1
     while True:
-        keep = alive[e_trip]
-        fs, we, ent = e_node[keep], e_w[keep], entry[keep]
-        first = np.concatenate([[True], fs[1:] != fs[:-1]])
+        first = np.concatenate([[True], e_node[1:] != e_node[:-1]])
         starts = np.flatnonzero(first)
         group = np.cumsum(first) - 1
-        top1 = we[starts]
-        sizes = np.diff(np.concatenate([starts, [len(fs)]]))
-        top2 = np.where(sizes > 1, we[np.minimum(starts + 1, len(fs) - 1)], 0.0)
-        s_e[ent] = np.where(first, top2[group], top1[group])
-        live = np.flatnonzero(alive)
-        s_t = s_e.reshape(-1, 3)[live].sum(axis=1)
-        dom = wp[live] > s_t
+        top1 = e_w[starts]
+        sizes = np.diff(np.concatenate([starts, [len(e_node)]]))
+        top2 = np.where(sizes > 1, e_w[np.minimum(starts + 1, len(e_node) - 1)], 0.0)
+        s_e[entry] = np.where(first, top2[group], top1[group])
+        s_t = s_cols[0][live] + s_cols[1][live] + s_cols[2][live]
+        dom = np.take(wp, live) > s_t
         if not dom.any():
             break
-        taken = live[dom]
+        taken = live.compress(dom)
         sure.append(np.sort(perm[taken]))
         used = np.zeros(n_nodes, dtype=bool)
-        used[ndp[taken].ravel()] = True
-        alive[live[used[ndp[live]].any(axis=1)]] = False
-        if not alive.any():
+        for col in nd_cols:
+            used[col[taken]] = True
+        gone = used[nd_cols[0][live]] | used[nd_cols[1][live]] | used[nd_cols[2][live]]
+        alive[live.compress(gone)] = False
+        live = live.compress(~gone)
+        if len(live) == 0:
             break
+        # (the few triples left: only their entries go on, in the same order)
+        keep = alive[e_trip]
+        entry, e_node, e_trip = entry.compress(keep), e_node.compress(keep), e_trip.compress(keep)
+        e_w = e_w.compress(keep)
     chosen = np.concatenate(sure) if sure else np.zeros(0, np.intp)
-    return chosen.astype(np.intp), np.sort(perm[alive])
+    return chosen.astype(np.intp), np.sort(perm[live])
 
 
 def _max_weight_packing(
@@ -716,9 +729,9 @@ def _max_weight_packing(
     chosen = [sure]
     if len(rest) == 0:
         return sure, len(sure), 1, 0
-    nodes, w = nodes_all[rest], w[rest]
+    nodes, w = np.take(nodes_all, rest, axis=0), w[rest]
     lab = _components(nodes)
-    order = np.argsort(lab, kind="stable")
+    order = stable_argsort(lab)
     lab_s = lab[order]
     starts = np.flatnonzero(np.concatenate([[True], lab_s[1:] != lab_s[:-1]]))
     sizes = np.diff(np.concatenate([starts, [len(lab_s)]]))

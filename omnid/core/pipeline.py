@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import require
+from omnid.core.arrays import median
 from omnid.core.calibration import Calibration
 from omnid.core.detect import DetectionParams, detect_dots
 from omnid.core.laser import LaserModel
@@ -173,7 +174,7 @@ def _health(
 ) -> CalibrationHealth:
     dots = n1 + n2
     explained = 2.0 * matched / dots if dots else math.nan
-    med = float(np.median(ratio)) if len(ratio) else math.nan
+    med = median(ratio) if len(ratio) else math.nan
     judged = dots >= s.min_dots
     return CalibrationHealth(
         explained if judged else math.nan, med, dots, not judged or explained >= s.min_explained
@@ -220,13 +221,14 @@ def perceive_detailed(
                 calib, laser, sigma, d1, d2, s
             )
         health = _health(len(d1), len(d2), len(m.i1), m.residual_px / sigma, s.health)
-        pixels = np.column_stack([d1[m.i1, :2], d2[m.i2, :2]])
+        # (np.take / np.compress: numpy indexes the rows of a 2-D array ~10x slower)
+        pixels = np.hstack([np.take(d1[:, :2], m.i1, axis=0), np.take(d2[:, :2], m.i2, axis=0)])
         tr = _tracks(calib.rig, laser)
         xyz, cov = triangulate_on_beams(
             calib.rig,
             pixels,
-            tr.slope[m.beam],
-            tr.cross_mm[m.beam],
+            np.take(tr.slope, m.beam, axis=0),
+            np.take(tr.cross_mm, m.beam, axis=0),
             tr.slope_sigma(m.beam, m.inv_depth),
             sigma,
         )
@@ -241,9 +243,9 @@ def perceive_detailed(
         return Perception(empty, d1, d2, det, health, *extra)
     ok = np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 0)
     cloud = PointCloud(
-        xyz=xyz[ok],
-        cov=cov[ok],
-        pixels=pixels[ok],
+        xyz=np.compress(ok, xyz, axis=0),
+        cov=np.compress(ok, cov, axis=0),
+        pixels=np.compress(ok, pixels, axis=0),
         classes=np.zeros(int(ok.sum()), dtype=np.uint8),
         floor_depth_mm=H,
         calibration_fit=fit,

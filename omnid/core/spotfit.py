@@ -35,6 +35,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from omnid.core.arrays import clip, stable_argsort
+
 #: Window half-size per spot sigma: the fit sees ±3 σ of each dot.
 WINDOW_PER_SIGMA = 3.0
 #: Gaussian taper of the fit's weights, in spot sigmas.
@@ -105,17 +107,22 @@ def window_half_px(sigma_px: float) -> int:
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
 
 
+#: :func:`near_pairs` without ``sort`` tests all pairs of up to this many points.
+_ALL_PAIRS_UP_TO = 64
+
+
 def near_pairs(
     rows: NDArray, cols: NDArray, reach: float, sort: bool = True
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """All pairs (i, j), i ≠ j, of points at most ``reach`` px apart per axis (the maximum
-    norm), both ways round, sorted by i (``sort`` is kept for the callers that do not need
-    it: the order is i's either way).
+    norm), both ways round, sorted by i; with ``sort`` the js of each i come in one fixed
+    order (the grid's below: sums over them repeat to the last bit), without it in any.
 
     A grid of square cells of side ``reach``: two points that close lie in the same or in
     adjacent cells, so each point's candidates are the points of its 3x3 cells, found by
     a table of the points sorted by cell — a few vectorised passes, about 2.5x faster
-    than a k-d tree's pairs for the ~10³ dots of an image.
+    than a k-d tree's pairs for the ~10³ dots of an image. Up to :data:`_ALL_PAIRS_UP_TO`
+    points without ``sort``: all n² pairs tested at once (the grid's passes cost more).
     """
     empty = np.zeros(0, np.intp), np.zeros(0, np.intp)
     n = len(rows)
@@ -123,6 +130,11 @@ def near_pairs(
         return empty
     r = np.asarray(rows, dtype=np.float64)
     c = np.asarray(cols, dtype=np.float64)
+    if not sort and n <= _ALL_PAIRS_UP_TO:
+        close = (np.abs(r[:, None] - r) <= reach) & (np.abs(c[:, None] - c) <= reach)
+        np.fill_diagonal(close, False)
+        i, j = np.nonzero(close)
+        return i.astype(np.intp, copy=False), j.astype(np.intp, copy=False)
     # (cells wider than ``reach`` are as good; at most ~1024 per axis keep the table small)
     span = max(float(np.ptp(r)), float(np.ptp(c)))
     cell = max(float(reach), span / 1024.0, 1e-9)
@@ -130,7 +142,7 @@ def near_pairs(
     gc = np.floor((c - c.min()) / cell).astype(np.int64) + 1
     width = int(gc.max()) + 2
     key = gr * width + gc
-    order = np.argsort(key, kind="stable")
+    order = stable_argsort(key)
     per_cell = np.bincount(key, minlength=(int(gr.max()) + 2) * width)
     cell_start = np.cumsum(per_cell) - per_cell
     shifts = (np.arange(-1, 2)[:, None] * width + np.arange(-1, 2)[None, :]).ravel()
@@ -140,12 +152,16 @@ def near_pairs(
     total = int(count.sum())
     if total == 0:
         return empty
-    first = np.cumsum(count) - count
+    ends = np.cumsum(count)
+    first = ends - count
     pos = np.arange(total) - np.repeat(first - lo, count)
-    i = np.repeat(np.repeat(np.arange(n, dtype=np.intp), 9), count)
+    # (each point's candidates: the difference of the running count at its 9 cells' ends)
+    per_point = np.diff(ends[8::9], prepend=0)
+    i = np.repeat(np.arange(n, dtype=np.intp), per_point)
     j = order[pos].astype(np.intp)
-    keep = (i != j) & (np.abs(r[i] - r[j]) <= reach) & (np.abs(c[i] - c[j]) <= reach)
-    return i[keep], j[keep]
+    ri, rj, ci, cj = np.take(r, i), np.take(r, j), np.take(c, i), np.take(c, j)
+    keep = (i != j) & (np.abs(ri - rj) <= reach) & (np.abs(ci - cj) <= reach)
+    return i.compress(keep), j.compress(keep)
 
 
 #: The 7 basis functions of a dot's fit as sums of (row, column) index pairs into the per-axis
@@ -198,8 +214,8 @@ def fit_spots(
     off = np.arange(-h, h + 1, dtype=np.float64)
     win_r = rows[:, None] + off[None, :]  # the window's pixel rows (n, size)
     win_c = cols[:, None] + off[None, :]
-    rr = np.clip(win_r.astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
-    cc_ = np.clip(win_c.astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
+    rr = clip(win_r.astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
+    cc_ = clip(win_c.astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
     inside = ((win_r >= 0) & (win_r < image.shape[0]))[:, :, None]
     inside = inside & ((win_c >= 0) & (win_c < image.shape[1]))[:, None, :]
     win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
@@ -321,10 +337,10 @@ def _update(
     d_mass, d_b0, d_s, d_r, d_br, d_c, d_bc = _gauss_newton_step(grad, pr, pc)
     new_mass = mass + d_mass
     safe = np.where(np.abs(new_mass) > 1e-9, new_mass, 1e-9)
-    step_r = np.clip(-d_r / safe, -MAX_STEP_PX, MAX_STEP_PX)
-    step_c = np.clip(-d_c / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    step_r = clip(-d_r / safe, -MAX_STEP_PX, MAX_STEP_PX)
+    step_c = clip(-d_c / safe, -MAX_STEP_PX, MAX_STEP_PX)
     s_min, s_max = st.s_range
-    st.s[k] = np.clip(s * np.clip(1.0 + d_s / (safe * s), 0.75, 1.33), s_min, s_max)
+    st.s[k] = clip(s * clip(1.0 + d_s / (safe * s), 0.75, 1.33), s_min, s_max)
     st.mass[k] = new_mass
     br, bc = br + d_br, bc + d_bc
     st.br[k], st.bc[k] = br, bc
@@ -373,6 +389,23 @@ def _gauss_newton_step(
     return tuple(out)
 
 
+def _neighbour_profiles(
+    i: NDArray[np.intp],
+    j: NDArray[np.intp],
+    win_r: NDArray[np.float64],
+    win_c: NDArray[np.float64],
+    st: _FitState,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The 1-D row and column profiles (pairs, size) of the neighbour j's current model over the
+    window of the dot i, for each pair (a model is separable: the window's light is their outer
+    product times the neighbour's mass)."""
+    size = win_r.shape[1]
+    sj = st.s[j, None]
+    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
+    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    return gjr, gjc
+
+
 def _neighbour_light(
     i: NDArray[np.intp],
     j: NDArray[np.intp],
@@ -392,9 +425,7 @@ def _neighbour_light(
     if not keep.any():
         return out
     i, j = i[keep], j[keep]
-    sj = st.s[j, None]
-    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
-    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
     light = st.mass[j, None, None] * gjr[:, :, None] * gjc[:, None, :]
     starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
     out[slot[i[starts]]] = np.add.reduceat(light, starts, axis=0)
@@ -415,10 +446,7 @@ def _neighbour_sums(
     window sums of the dots i (indices into ``frw``, ``fcw``, ``win_r``, ``win_c``; pairs
     sorted by i). A model is separable, so each pair's share is an outer product of two 1-D
     overlaps."""
-    size = win_r.shape[1]
-    sj = st.s[j, None]
-    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
-    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
+    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
     vr = (frw[i] @ gjr[:, :, None])[:, :, 0]  # (pairs, 5)
     vc = (gjc[:, None, :] @ fcw[i])[:, 0, :]
     contrib = (st.mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
@@ -517,8 +545,8 @@ def _split_windows(
     ones = np.ones_like(off)
     dr = np.broadcast_to((off[:, None] * ones[None, :]).ravel(), (n, off.size**2))
     dc = np.broadcast_to((ones[:, None] * off[None, :]).ravel(), (n, off.size**2))
-    rr = np.clip(ir[:, None] + dr.astype(np.intp), 0, image.shape[0] - 1)
-    cc = np.clip(ic[:, None] + dc.astype(np.intp), 0, image.shape[1] - 1)
+    rr = clip(ir[:, None] + dr.astype(np.intp), 0, image.shape[0] - 1)
+    cc = clip(ic[:, None] + dc.astype(np.intp), 0, image.shape[1] - 1)
     return image[rr, cc].astype(np.float64), dr, dc, ir, ic
 
 
@@ -582,7 +610,7 @@ def two_spot_test(
             censored = None
     r0, c0 = r - ir, c - ic
     excess, theta = _excess(data, dr, dc)
-    half = np.clip(np.sqrt(np.maximum(excess, 0.0)), 0.3 * sigma_px, 1.5 * sigma_px)
+    half = clip(np.sqrt(np.maximum(excess, 0.0)), 0.3 * sigma_px, 1.5 * sigma_px)
     er, ec = np.cos(theta), np.sin(theta)
     top = data.max(axis=1)
     s = float(sigma_px)

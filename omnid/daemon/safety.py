@@ -7,20 +7,40 @@ it (:func:`omnid.core.kinematics.integrate_arc`) — over a look-ahead horizon, 
 against an :class:`~omnid.core.occupancy.OccupancyGrid`. Obstacles and drop-offs both block.
 The path parameter ``s`` is the travel of the footprint's fastest point (the axle midpoint on a
 straight line, the farthest corner when turning in place), so one set of distances serves every
-kind of motion. From the first blocked ``s`` (``clearance``) come:
+kind of motion. Each contact is met by the footprint's **leading face** — its front (margin
+strip and corners included) driving forward, its rear reversing — or by its sides and trailing
+face: the **swing** of a turn (a differential drive turns about its axle, so the tail 750 mm
+behind it moves sideways at 750·ω whatever v is; a turn in place has no leading face). What the
+leading face drives into is what the laser sees ahead now, approached head-on; a swing meets
+what lies beside the chair, seen before, and closes only while the rider keeps turning. From
+the first leading contact come:
 
-- stop zone: clearance ≤ ``stop_distance_mm`` → no motion in that direction, unless the move is
+- stop zone: ≤ ``stop_distance_mm`` → no motion in that direction, unless the move is
   an escape move (below) → at most ``escape_speed_mm_s`` / ``escape_turn_rad_s``;
-- slow zone: clearance ≤ ``slow_distance_mm`` → at most ``slow_speed_mm_s``;
+- slow zone: ≤ ``slow_distance_mm`` → at most ``slow_speed_mm_s``;
 - approach: time to reach the stop line ≥ ``approach_time_s``, and the chair can still brake
   before it at ``brake_decel_mm_s2``, but never slower than ``approach_min_speed_mm_s`` (so
   that it arrives at the stop line instead of creeping towards it ever slower);
+
+and from the first swing contact only what physics asks: the fastest point no faster than it
+can still stop ``swing_buffer_mm`` before it (``reaction_time_s`` at that speed, then
+``brake_decel_mm_s2``; reason ``approach``), and no motion that way once it is within the
+buffer plus the stopping distance from ``approach_min_speed_mm_s`` (stop zone, escape rule as
+above). The buffer is for what the dots do not show: a thing is sampled by laser dots tens of
+mm apart (a box corner lies between them), which the leading face's 150 mm hides. So a rider
+correcting the heading in a door frame or beside a wall is not refused 150 mm of a corner's
+travel (10° of turn) before the tail would reach the margin. (``clearance`` is the first contact
+of either kind.) Further:
+
 - unknown space: if more than ``unknown_max_fraction`` of the swept cells within
   ``unknown_distance_mm`` are unknown → at most ``unknown_speed_mm_s``;
 - unseen space is not free (``unknown_policy``): the footprint's sweep into cells never seen —
   the tail swinging out in a turn, every reverse move, an arc beside the chair — is refused
   like an obstacle's stop zone (``refuse``, reason ``unknown_stop``), and the chair may only
-  approach it as fast as it could still stop before it (reason ``unknown_ahead``); with
+  approach it as fast as it could still stop before it (reason ``unknown_ahead``) — split by
+  face as above: ahead of the leading face by cell centres against the footprint itself and the
+  stop zone; in a swing each cell by its whole extent against the footprint itself and the
+  stopping distance (no buffer: the whole cell is taken), so it never enters one; with
   ``creep`` it is crossed at ``unknown_creep_speed_mm_s`` (``unknown_creep``). One band is
   crossed at creep speed under either policy: the ``front_blind_mm`` straight ahead of the
   footrests, which the laser cannot see from where the chair stands (its nearest dots fall
@@ -64,7 +84,7 @@ import logging
 import math
 from dataclasses import dataclass
 from enum import Enum
-from typing import Any, Literal, overload
+from typing import Any, Literal, NamedTuple, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -120,6 +140,14 @@ class SafetySettings(Settings):
     approach_time_s: float = setting(2.0, 0.1, 10.0)
     # the chair must be able to stop before the stop line
     brake_decel_mm_s2: float = setting(600.0, 50.0, 5000.0)
+    # a request to the wheels braking: a control period plus the motors' lag (time constant
+    # 0.1-0.2 s), rounded up; with brake_decel_mm_s2 the stopping distance a turn's swing (a
+    # contact on the sides or the trailing face) needs instead of the stop zone
+    reaction_time_s: float = setting(0.3, 0.0, 2.0)
+    # ... and a swing stops this far (fastest point's travel) before what the sweep meets: what
+    # the laser dots show of a thing is sampled (dots tens of mm apart, a box corner between
+    # them) — the stop zone's 150 mm hid that; the margin covers the map's position error
+    swing_buffer_mm: float = setting(25.0, 0.0, 500.0)
     # ... but it reaches the stop line: the approach cap never falls below this (fastest point;
     # room/T alone is an exponential approach that never arrives — a chair creeping ever slower
     # 10 mm from its stop line). Stopping from it takes under 1 mm at the emergency rate
@@ -309,6 +337,38 @@ def contact_path_s(
 Evidence = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
 
+class _Sweep(NamedTuple):
+    """A cached blocking sweep (:meth:`SafetyLayer._blocking_sweep`): the first contact (mm) and
+    its state, the side intrusion (mm, :meth:`SafetyLayer._side_intrusion`), and the first
+    contact of the leading face and of the swing with their states."""
+
+    clearance_mm: float
+    state: CellState | None
+    side_mm: float
+    lead_mm: float
+    lead_state: CellState | None
+    swing_mm: float
+    swing_state: CellState | None
+
+
+_NO_SWEEP = _Sweep(math.inf, None, 0.0, math.inf, None, math.inf, None)
+
+
+def _first_contact(
+    s_mm: NDArray[np.float64], drop: NDArray[np.bool_], tie_mm: float
+) -> tuple[float, CellState | None]:
+    """The first contact (mm, ``inf`` for none) and what it is: a drop-off if one lies within
+    ``tie_mm`` of it."""
+    if s_mm.size == 0:
+        return math.inf, None
+    k = int(np.argmin(s_mm))
+    if not math.isfinite(s_mm[k]):
+        return math.inf, None
+    first = float(s_mm[k])
+    tie = s_mm <= first + tie_mm
+    return first, CellState.DROPOFF if np.any(drop[tie]) else CellState.OBSTACLE
+
+
 def _unique(reasons: list[Reason]) -> tuple[Reason, ...]:
     """The reasons in order, each once."""
     out: list[Reason] = []
@@ -330,6 +390,9 @@ class SafetyLayer:
         self._y1 = -self._y0
         # the chair itself (no margin): cells under it are not seen and not obstacles
         self._fx0, self._fx1 = -s.footprint_rear_mm, s.footprint_front_mm
+        # a swing this near (fastest point's travel) is refused: the stopping distance from
+        # the slowest speed the approach rules allow
+        self._swing_refuse_mm = self.swing_stop_mm(s.approach_min_speed_mm_s)
         self._fy1 = 0.5 * s.footprint_width_mm
         self._fy0 = -self._fy1
         corners = np.array(
@@ -356,11 +419,12 @@ class SafetyLayer:
             tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
             | None
         ) = None
-        self._sweeps: dict[tuple[float, float], tuple[float, CellState | None]] = {}
+        # per twist: clearance, blocking state, side intrusion (:meth:`_side_intrusion`, mm),
+        # and the first contact of the leading face and of the swing with their states
+        self._sweeps: dict[tuple[float, float], _Sweep] = {}
         self._fractions: dict[tuple[float, float], float] = {}
-        self._contact_ys: dict[tuple[float, float], float] = {}
-        self._contact_y_mm = 0.0  # of the last uncached sweep
-        self._unknown: dict[tuple[float, float], tuple[float, float]] = {}
+        # per twist: unknown_clearance's (unseen, blind) and unknown_contacts' (leading, swing)
+        self._unknown: dict[tuple[float, float], tuple[float, float, float, float]] = {}
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
         ) = None
@@ -429,21 +493,24 @@ class SafetyLayer:
         standing chair with a held command costs a dictionary lookup). :meth:`sweep_reference`
         is the slow sampled sweep this is tested against.
         """
-        clearance, state = self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
-        return clearance, state, self._sweep_unknown(grid, v_mm_s, omega_rad_s, clearance)
+        b = self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+        unknown = self._sweep_unknown(grid, v_mm_s, omega_rad_s, b.clearance_mm)
+        return b.clearance_mm, b.state, unknown
 
-    def _sweep_blocking(
+    def _blocking_sweep(
         self,
         grid: OccupancyGrid,
         v_mm_s: float,
         omega_rad_s: float,
         evidence: Evidence | None,
         evidence_key: object,
-    ) -> tuple[float, CellState | None]:
-        """:meth:`sweep`'s clearance and blocking state (cached per map content and twist)."""
+    ) -> _Sweep:
+        """:meth:`sweep`'s clearance and blocking state, for a straight forward twist the side
+        intrusion of what it meets (:meth:`_side_intrusion`; 0 otherwise), and the first contact of the leading face
+        and of the swing (:meth:`contacts`), cached together."""
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm  # speed of the fastest point
         if u <= 0.0:
-            return math.inf, None
+            return _NO_SWEEP
         self._use_map(grid, evidence, evidence_key)
         cached = self._sweeps.get((v_mm_s, omega_rad_s))
         if cached is not None:
@@ -451,25 +518,78 @@ class SafetyLayer:
         assert self._blocking is not None
         bx, by, grow, bdrop = self._blocking
         sb = self._contact(bx, by, grow, v_mm_s, omega_rad_s, u)
-        clearance, state = math.inf, None
-        self._contact_y_mm = 0.0
-        if sb.size:
-            k = int(np.argmin(sb))
-            if math.isfinite(sb[k]):
-                clearance = float(sb[k])
-                h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
-                tie = sb <= clearance + h
-                state = CellState.DROPOFF if np.any(bdrop[tie]) else CellState.OBSTACLE
-                if omega_rad_s == 0.0 and v_mm_s > 0.0:
-                    self._contact_y_mm = self._side_intrusion(by, grow, sb)
-        result = (clearance, state)
+        h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
+        clearance, state = _first_contact(sb, bdrop, h)
+        side = 0.0
+        if math.isfinite(clearance) and omega_rad_s == 0.0 and v_mm_s > 0.0:
+            side = self._side_intrusion(by, grow, sb)
+        lead = self._leading(bx, by, sb, v_mm_s, omega_rad_s, u)
+        result = _Sweep(
+            clearance,
+            state,
+            side,
+            *_first_contact(sb[lead], bdrop[lead], h),
+            *_first_contact(sb[~lead], bdrop[~lead], h),
+        )
         if len(self._sweeps) >= 256:
             self._sweeps.clear()
-        self._contact_ys.pop((v_mm_s, omega_rad_s), None)
         if self._map_key is not None:
             self._sweeps[(v_mm_s, omega_rad_s)] = result
-            self._contact_ys[(v_mm_s, omega_rad_s)] = self._contact_y_mm
         return result
+
+    def contacts(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        evidence: Evidence | None = None,
+        evidence_key: object = None,
+    ) -> tuple[float, CellState | None, float, CellState | None]:
+        """The sweep's blocking contacts split by the face that meets them: (first contact mm,
+        state) of the **leading face** — the front (its margin strip and corners included)
+        driving forward, the rear reversing, none turning in place — and of the **swing** (the
+        sides and the trailing face). ``inf, None`` where there is none (cached with
+        :meth:`sweep`)."""
+        b = self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+        return b.lead_mm, b.lead_state, b.swing_mm, b.swing_state
+
+    def _leading(
+        self,
+        px: NDArray[np.float64],
+        py: NDArray[np.float64],
+        s_mm: NDArray[np.float64],
+        v_mm_s: float,
+        omega_rad_s: float,
+        u: float,
+    ) -> NDArray[np.bool_]:
+        """Which contacts ``s_mm`` of the points (robot frame now) the leading face meets: where
+        the point lies, in the robot frame of the pose of contact, at or beyond the footprint's
+        front (forward) or rear (reverse) without margins, so the margin strip counts as that face;
+        none for a turn in place."""
+        fin = np.isfinite(s_mm)
+        if v_mm_s == 0.0 or not np.any(fin):
+            return np.zeros(len(px), dtype=bool)
+        s = np.where(fin, s_mm, 0.0)
+        if omega_rad_s == 0.0:
+            xc = px - s * math.copysign(1.0, v_mm_s)
+        else:
+            th = s * (omega_rad_s / u)
+            r = v_mm_s / omega_rad_s
+            xc = np.cos(th) * (px - r * np.sin(th)) + np.sin(th) * (py - r * (1.0 - np.cos(th)))
+        ahead = xc >= self._fx1 - 1e-6 if v_mm_s > 0.0 else xc <= self._fx0 + 1e-6
+        return np.asarray(fin & ahead)
+
+    def swing_stop_mm(self, speed_mm_s: float) -> float:
+        """Stopping distance (mm) of the fastest footprint point from ``speed_mm_s``: the
+        reaction time at that speed, then braking at ``brake_decel_mm_s2``."""
+        s = self.settings
+        return speed_mm_s * s.reaction_time_s + speed_mm_s**2 / (2.0 * s.brake_decel_mm_s2)
+
+    def _swing_cap(self, room_mm: float) -> float:
+        """The speed (mm/s, fastest point) whose stopping distance is ``room_mm``."""
+        s = self.settings
+        a, t = s.brake_decel_mm_s2, s.reaction_time_s
+        return a * (math.sqrt(t * t + 2.0 * max(room_mm, 0.0) / a) - t)
 
     def _side_intrusion(
         self, by: NDArray[np.float64], grow: NDArray[np.float64], s_mm: NDArray[np.float64]
@@ -487,20 +607,28 @@ class SafetyLayer:
             return float(np.max(self._y1 + g - y))
         return -float(np.max(self._y1 + g + y))
 
-    def _contact_side(self, v_mm_s: float, omega_rad_s: float) -> float:
+    def _contact_side(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        evidence: Evidence | None,
+        evidence_key: object,
+    ) -> float:
         """For a straight forward request: +1 if what limits it within the slow zone lies all
         left of the path and a sideways shift the sharpest candidate arc makes over the slow
         zone's travel (``_arc_shift_mm``) clears it, −1 likewise right, else 0 (after its
         sweep: :meth:`_side_intrusion`)."""
-        y = self._contact_ys.get((v_mm_s, omega_rad_s), self._contact_y_mm)
-        if not self._arc_radii_mm or abs(y) > self._arc_shift_mm:
+        if not self._arc_radii_mm or v_mm_s <= 0.0:
+            return 0.0
+        y = self._blocking_sweep(grid, v_mm_s, 0.0, evidence, evidence_key).side_mm
+        if abs(y) > self._arc_shift_mm:
             return 0.0
         return float(np.sign(y))
 
     def _sweep_unknown(
         self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float, clearance_mm: float
     ) -> float:
-        """:meth:`sweep`'s unknown fraction (after :meth:`_sweep_blocking` for this map)."""
+        """:meth:`sweep`'s unknown fraction (after :meth:`_blocking_sweep` for this map)."""
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
         if u <= self.settings.unknown_speed_mm_s:  # the fraction caps only what is faster
             return 0.0
@@ -529,7 +657,6 @@ class SafetyLayer:
         self._map_key = map_key
         self._sweeps.clear()
         self._fractions.clear()
-        self._contact_ys.clear()
         self._unknown.clear()
         if evidence is None:
             xs, ys = self._centres(grid)
@@ -563,12 +690,18 @@ class SafetyLayer:
         v_mm_s: float,
         omega_rad_s: float,
         u: float,
+        margins: bool = True,
     ) -> NDArray[np.float64]:
-        """Contact path parameter (mm) of each point, the footprint grown by the point's own
-        ``grow`` (mm); points under the chair itself (the footprint without its margin)
-        ignored (see :func:`contact_path_s`)."""
+        """Contact path parameter (mm) of each point, the footprint (with its margins, or
+        without: ``margins=False``) grown by the point's own ``grow`` (mm); points under the
+        chair itself (the footprint without its margin) ignored (see :func:`contact_path_s`)."""
         hz = self.settings.horizon_mm
-        rect = (self._x0 - grow, self._x1 + grow, self._y0 - grow, self._y1 + grow)
+        x0, x1, y0, y1 = (
+            (self._x0, self._x1, self._y0, self._y1)
+            if margins
+            else (self._fx0, self._fx1, self._fy0, self._fy1)
+        )
+        rect = (x0 - grow, x1 + grow, y0 - grow, y1 + grow)
         s_mm = contact_path_s(px, py, v_mm_s, omega_rad_s, rect, u, hz)
         own = (px >= self._fx0) & (px <= self._fx1) & (py >= self._fy0) & (py <= self._fy1)
         band = np.flatnonzero((s_mm == 0.0) & ~own)
@@ -580,11 +713,9 @@ class SafetyLayer:
             # later when it draws away first and comes back. So a thing seen inside the margin
             # is never driven into (the margin is not traded), and never strands the chair.
             bx, by = px[band], py[band]
-            g = np.maximum(
-                np.maximum(self._x0 - bx, bx - self._x1), np.maximum(self._y0 - by, by - self._y1)
-            )
+            g = np.maximum(np.maximum(x0 - bx, bx - x1), np.maximum(y0 - by, by - y1))
             g = g - 1e-9 * (np.abs(g) + 1.0)  # the point just outside its own rectangle
-            grown = (self._x0 - g, self._x1 + g, self._y0 - g, self._y1 + g)
+            grown = (x0 - g, x1 + g, y0 - g, y1 + g)
             s_mm[band] = contact_path_s(bx, by, v_mm_s, omega_rad_s, grown, u, hz)
         s_mm[own] = math.inf
         return s_mm
@@ -605,10 +736,30 @@ class SafetyLayer:
         :meth:`sweep` (or :meth:`check`) first for this map content: the result is cached with
         the sweeps.
         """
+        unseen, blind, _, _ = self._unknown_sweep(grid, v_mm_s, omega_rad_s)
+        return unseen, blind
+
+    def unknown_contacts(
+        self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float
+    ) -> tuple[float, float]:
+        """:meth:`unknown_clearance`'s never-seen cells outside the blind band split by the face
+        that meets them (as :meth:`contacts`): (the leading face's first contact, by centres
+        against the footprint itself as there; the swing's first contact, each cell by its whole
+        extent — its centre grown by half a cell — against the footprint itself: the swing may
+        come as near as its stopping distance, so the footprint never enters a cell never seen;
+        one it overlaps now, its trail's edge, it enters no further). ``inf`` for none, or none
+        within the reach."""
+        _, _, lead, swing = self._unknown_sweep(grid, v_mm_s, omega_rad_s)
+        return lead, swing
+
+    def _unknown_sweep(
+        self, grid: OccupancyGrid, v_mm_s: float, omega_rad_s: float
+    ) -> tuple[float, float, float, float]:
+        """:meth:`unknown_clearance` and :meth:`unknown_contacts` (cached together)."""
         s = self.settings
         u = abs(v_mm_s) + abs(omega_rad_s) * self.r_max_mm
         if u <= 0.0:
-            return math.inf, math.inf
+            return math.inf, math.inf, math.inf, math.inf
         cached = self._unknown.get((v_mm_s, omega_rad_s))
         if cached is not None and self._map_key is not None:
             return cached
@@ -632,7 +783,8 @@ class SafetyLayer:
         wx = ox[:, None] + c * cx - sn * cy
         wy = oy[:, None] + sn * cx + c * cy
         bulge = self.r_max_mm * (1.0 - math.cos(0.5 * abs(float(th[1] - th[0]))))
-        pad = res + bulge
+        # (and half a cell: the swing's contacts by the cells' extent, unknown_contacts)
+        pad = 1.5 * res + bulge
         i0 = math.floor((wx.min() - pad - g.x_min_mm) / res)
         i1 = math.floor((wx.max() + pad - g.x_min_mm) / res) + 1
         j0 = math.floor((wy.min() - pad - g.y_min_mm) / res)
@@ -652,13 +804,15 @@ class SafetyLayer:
         if v_mm_s > 0.0 and s.front_blind_mm > 0.0:
             blind = (px > self._fx1) & (px <= self._x1 + s.front_blind_mm + h)
             blind &= np.abs(py) <= self._y1 + h
-        far = s_mm[~blind]
-        near = s_mm[blind]
-        result = (
-            float(far.min()) if far.size else math.inf,
-            float(near.min()) if near.size else math.inf,
-        )
-        result = tuple(x if x <= reach else math.inf for x in result)  # type: ignore[assignment]
+        lead = self._leading(px, py, s_mm, v_mm_s, omega_rad_s, u)
+        swing = ~blind & ~lead
+        # the grid is in the robot frame: a cell's extent is its centre grown by half a cell;
+        # against the footprint itself (the margin is for the position error of things seen)
+        # (one the chair overlaps now, its trail's edge: no nearer than it is)
+        s_ext = self._contact(px[swing], py[swing], 0.5 * res, v_mm_s, omega_rad_s, u, False)
+        found = (s_mm[~blind], s_mm[blind], s_mm[~blind & lead], s_ext)
+        first = [float(x.min()) if x.size and x.min() <= reach else math.inf for x in found]
+        result = (first[0], first[1], first[2], first[3])
         if self._map_key is not None:
             self._unknown[(v_mm_s, omega_rad_s)] = result
         return result
@@ -716,7 +870,7 @@ class SafetyLayer:
         s = self.settings
         if s.escape_speed_mm_s <= 0.0:
             return False
-        self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)  # cached
+        self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)  # cached
         d = self.escape_gaps(grid, v_mm_s, omega_rad_s)
         if d.shape[1] == 0:
             return False  # nothing near, yet in the stop zone: not a pocket, keep the refusal
@@ -847,10 +1001,14 @@ class SafetyLayer:
         decision = self._limit(grid, v_mm_s, omega_rad_s, perception_age_s, evidence, evidence_key)
         # a straight forward request when what limits it within the slow zone is a side
         # intrusion a small shift clears (a door jamb); the arcs turn away from it
-        softenable = omega_rad_s != 0.0 or (
-            v_mm_s > 0.0 and self._arc_radii_mm and self._contact_side(v_mm_s, 0.0) != 0.0
-        )
-        if decision.scale < 1.0 and softenable and self.settings.soften:
+        if (
+            decision.scale < 1.0
+            and self.settings.soften
+            and (
+                omega_rad_s != 0.0
+                or self._contact_side(grid, v_mm_s, evidence, evidence_key) != 0.0
+            )
+        ):
             decision = self.soften(
                 grid, v_mm_s, omega_rad_s, decision, perception_age_s, evidence, evidence_key
             )
@@ -928,7 +1086,9 @@ class SafetyLayer:
             return p - math.hypot(ax - p * ux, ay - p * uy)
 
         best, best_score = limited, score(limited.v_mm_s, limited.omega_rad_s)
-        side = self._contact_side(v_mm_s, 0.0) if omega_rad_s == 0.0 else 0.0
+        side = (
+            self._contact_side(grid, v_mm_s, evidence, evidence_key) if omega_rad_s == 0.0 else 0.0
+        )
         candidates = self.soften_candidates(v_mm_s, omega_rad_s, side)
         bounded = [(score(v, w), v, w) for v, w in candidates]
         bounded.sort(key=lambda c: -c[0])  # stable: list order among equal bounds
@@ -1009,31 +1169,39 @@ class SafetyLayer:
             caps.append(0.0)
             if beat_scale >= 0.0:
                 return None
-        clearance, state = self._sweep_blocking(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
-        if clearance <= s.stop_distance_mm:
+        b = self._blocking_sweep(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
+        clearance, lead, lead_state, swing, swing_state = (
+            b.clearance_mm, b.lead_mm, b.lead_state, b.swing_mm, b.swing_state
+        )  # fmt: skip
+        lead_stop = lead <= s.stop_distance_mm
+        swing_stop = swing <= s.swing_buffer_mm + self._swing_refuse_mm
+        if lead_stop or swing_stop:
+            drop = (lead_stop and lead_state is CellState.DROPOFF) or (
+                swing_stop and swing_state is CellState.DROPOFF
+            )
             escape_cap = u * min(
                 s.escape_speed_mm_s / abs(v_mm_s) if v_mm_s else math.inf,
                 s.escape_turn_rad_s / abs(omega_rad_s) if omega_rad_s else math.inf,
             )
             if beat_scale >= 0.0 and escape_cap <= beat_cap:
                 return None  # not even as an escape move
-            escape = state is CellState.OBSTACLE and self.is_escape(
-                grid, v_mm_s, omega_rad_s, evidence, evidence_key
-            )
+            escape = not drop and self.is_escape(grid, v_mm_s, omega_rad_s, evidence, evidence_key)
             if escape:
                 reasons.append(Reason.ESCAPE)
                 caps.append(escape_cap)
             else:
-                reasons.append(
-                    Reason.DROPOFF_STOP if state is CellState.DROPOFF else Reason.OBSTACLE_STOP
-                )
+                reasons.append(Reason.DROPOFF_STOP if drop else Reason.OBSTACLE_STOP)
                 caps.append(0.0)
-        elif math.isfinite(clearance):
-            room = clearance - s.stop_distance_mm
-            if clearance <= s.slow_distance_mm and u > s.slow_speed_mm_s:
-                reasons.append(Reason.SLOW_ZONE)
-                caps.append(s.slow_speed_mm_s)
-            cap = self._approach_cap(room)
+        else:
+            if math.isfinite(lead):
+                if lead <= s.slow_distance_mm and u > s.slow_speed_mm_s:
+                    reasons.append(Reason.SLOW_ZONE)
+                    caps.append(s.slow_speed_mm_s)
+                cap = self._approach_cap(lead - s.stop_distance_mm)
+                if u > cap:
+                    reasons.append(Reason.APPROACH)
+                    caps.append(cap)
+            cap = self._swing_cap(swing - s.swing_buffer_mm)
             if u > cap:
                 reasons.append(Reason.APPROACH)
                 caps.append(cap)
@@ -1041,20 +1209,24 @@ class SafetyLayer:
             return None
         unseen, blind = self.unknown_clearance(grid, v_mm_s, omega_rad_s)
         creep = s.unknown_creep_speed_mm_s
-        if unseen <= s.stop_distance_mm:
-            if s.unknown_policy == "creep":
-                if u > creep:
-                    reasons.append(Reason.UNKNOWN_CREEP)
-                    caps.append(creep)
-            else:
+        if s.unknown_policy == "creep":
+            if unseen <= s.stop_distance_mm and u > creep:
+                reasons.append(Reason.UNKNOWN_CREEP)
+                caps.append(creep)
+        else:
+            unseen_lead, unseen_swing = self.unknown_contacts(grid, v_mm_s, omega_rad_s)
+            if unseen_lead <= s.stop_distance_mm or unseen_swing <= self._swing_refuse_mm:
                 reasons.append(Reason.UNKNOWN_STOP)
                 caps.append(0.0)
-        elif math.isfinite(unseen) and s.unknown_policy == "refuse":
-            # no slow zone (nothing is known to be there), but it must stop before it
-            cap = self._approach_cap(unseen - s.stop_distance_mm)
-            if u > cap:
-                reasons.append(Reason.UNKNOWN_AHEAD)
-                caps.append(cap)
+            else:
+                # no slow zone (nothing is known to be there), but it must stop before it
+                cap = min(
+                    self._approach_cap(unseen_lead - s.stop_distance_mm),
+                    self._swing_cap(unseen_swing),
+                )
+                if u > cap:
+                    reasons.append(Reason.UNKNOWN_AHEAD)
+                    caps.append(cap)
         if blind <= s.stop_distance_mm and u > creep:
             reasons.append(Reason.UNKNOWN_CREEP)
             caps.append(creep)

@@ -14,9 +14,9 @@ def one_core(cv2: object) -> str:
     and describe the machine: versions, threads, CPUs, the load average now."""
     import numpy as np
 
-    cv2.setNumThreads(1)  # type: ignore[attr-defined]
-    threads = cv2.getNumThreads()  # type: ignore[attr-defined]
-    version = cv2.__version__  # type: ignore[attr-defined]
+    cv2.setNumThreads(1)  # type: ignore[attr-defined, unused-ignore]
+    threads = cv2.getNumThreads()  # type: ignore[attr-defined, unused-ignore]
+    version = cv2.__version__  # type: ignore[attr-defined, unused-ignore]
     return (
         f"python {platform.python_version()}, numpy {np.__version__}, cv2 {version}, "
         f"one core (cv2 threads {threads}, BLAS threads 1), {platform.machine()}, "

@@ -367,7 +367,7 @@ class SimCamera:
                 signal += laser_image(cam, cam.project(xyz), opts.spots, rng, flux_all[vis, i])
             noise = np.empty(signal.shape, dtype=np.float32)
             cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
-            cv2.randn(noise, 0.0, 1.0)  # type: ignore[call-overload]
+            cv2.randn(noise, 0.0, 1.0)  # type: ignore[call-overload, unused-ignore]
             if opts.shot_noise_gain > 0:
                 var = opts.noise_sigma**2 + opts.shot_noise_gain * np.maximum(signal, 0.0)
                 noise *= np.sqrt(var).astype(np.float32)

@@ -510,7 +510,7 @@ def _randn(shape: tuple[int, int], rng: np.random.Generator) -> NDArray[np.float
     default generator is per thread, so concurrent renders do not disturb each other."""
     out = np.empty(shape, dtype=np.float32)
     cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
-    cv2.randn(out, 0.0, 1.0)  # type: ignore[call-overload]  # (stubs want arrays, not floats)
+    cv2.randn(out, 0.0, 1.0)  # type: ignore[call-overload, unused-ignore]  # (stubs want arrays, not floats)
     return out
 
 
@@ -530,7 +530,7 @@ def _noise(
 
 def _to_u8(img: NDArray) -> NDArray[np.uint8]:
     """Round (half to even, as np.rint) and saturate to 0…255."""
-    return np.asarray(cv2.add(img, 0.0, dtype=cv2.CV_8U), dtype=np.uint8)  # type: ignore[call-overload]
+    return np.asarray(cv2.add(img, 0.0, dtype=cv2.CV_8U), dtype=np.uint8)  # type: ignore[call-overload, unused-ignore]  # opencv 5.0 stubs only
 
 
 def _box_around(

@@ -231,10 +231,11 @@ def demo_story(rear_mm: float = 750.0) -> ReactiveRider:
             Step("back away", moved(120.0), 6.0, stick=(-0.5, 0.0), settle_s=0.5),
             Step("turn right, towards the stairs", heading(-90.0), 15.0, head="right"),
             Step("forward towards the stairs", refused("dropoff_stop"), 25.0, head="forward"),
-            # box 3 beside it, the stairs' edge ahead: whichever the turn would reach first
+            # box 3 beside it, the stairs' edge ahead, the floor beside them the laser never saw:
+            # whichever the turn would reach first
             Step(
                 "turn right, towards box 3",
-                refused("obstacle_stop", "dropoff_stop"),
+                refused("obstacle_stop", "dropoff_stop", "unknown_stop"),
                 10.0,
                 head="right",
             ),

@@ -21,8 +21,17 @@ world's truth, never from what the daemon believed:
   the margin; measured on truth as the rules measure it, along the chair's current motion:
   how far the true footprint can travel before it touches the hazard) to the first command the
   safety layer limited (0 when the chair was already limited then);
-- for a doorway or corridor: whether the whole chair got through, the slowest it went while
-  any part of it was in the opening, and whether it stood still there.
+- for a doorway, corridor or wall to drive along: whether the whole chair got through; its
+  **safety stops** before it did — control steps where the rider asked to move and the safety
+  layer limited the command to zero (``SafetyDecision.stopped``: ``obstacle_stop``,
+  ``dropoff_stop``, ``unknown_stop``, ``perception_stale``, … or a ``bump``), counted as events
+  (runs of such steps; "at the door" those that began with the true footprint within the slow
+  zone, ``safety.slow_distance_mm``, of the passage) and seconds, with their reasons and the
+  least true clearance to the passage at an event's start; the slowest forward speed the
+  daemon allowed while any part of the chair was in the opening and the rider asked to go
+  forward (and the true slowest speed there); and, apart, the **rider's own** pauses and
+  turns in place in it (steps asking no travel: a head rider corrects its heading by stopping
+  and turning in place, mean wheel speed 0 — not a stop of the daemon's).
 
 Scenarios (:data:`SCENARIOS`): a thin post, a 60 mm threshold, a narrow trench, a wall and a
 drop-off edge approached obliquely, turning beside a wall seen and one never seen, doorways of
@@ -347,12 +356,14 @@ def corridor(kind: RiderKind, seed: int) -> Trial:
 
 def along_wall(kind: RiderKind, seed: int) -> Trial:
     """A wall 150 mm beside the chair's right side (face at y = −500), 5 m long; the rider
-    drives along it (the joystick holding the line, the head straight on)."""
+    drives along it (the joystick holding the line, the head straight on), the first 1.4 m
+    straight as in the passages (at start-up the floor beside the tail is unseen: a correction
+    there swings the tail into it, refused)."""
     lateral, dth = _jitter(seed, 15.0, 1.5)
     wall = Box(-1500.0, 5000.0, -600.0, -500.0, 1000.0)
     course = _room((wall,), x_range=(-1200.0, 6000.0), y_range=(-600.0, 2500.0),
                    start=(0.0, lateral, dth), name="along a wall at 150 mm")  # fmt: skip
-    rider = LinePilot(kind, (0.0, 0.0), 0.0, until_x_mm=4200.0, start_s=0.7)
+    rider = LinePilot(kind, (0.0, 0.0), 0.0, until_x_mm=4200.0, start_s=0.7, straight_mm=1400.0)
     return Trial("along a wall at 150 mm", kind, seed, course, 40.0, rider, chair_for(seed),
                  hazard=(("box", 0),), opening=(0.0, 3800.0), goal_x_mm=3800.0,
                  response=False)  # fmt: skip
@@ -398,6 +409,53 @@ def dense_room() -> tuple[tuple[Box, ...], tuple[DropOff, ...]]:
         Box(200.0, 240.0, -1100.0, -1060.0, 900.0),
     )
     return boxes, (ROOM_DROP,)
+
+
+# -- the soak's setup (tests/scenarios/test_soak.py, tools/bench_soften.py) ------------------
+
+#: The soak's safety changes: escape moves at 40 mm/s (off by default: with them the chair creeps
+#: out of the pocket between the first three boxes), crossing the unseen at creep speed (the
+#: blind random rider strands the chair under ``refuse``), and the staleness limit of the
+#: stationary capture it runs on (a cloud every 0.5 s).
+SOAK_SAFETY: dict[str, Any] = {
+    "escape_speed_mm_s": 40.0,
+    "unknown_policy": "creep",
+    "perception_timeout_s": 1.5,
+}
+
+
+def soak_course() -> Course:
+    """The cluttered room of the soak: :data:`ROOM_BOXES` and :data:`ROOM_DROP` in a walled room
+    8 m long and 4 m wide, the chair 1 m from its back wall."""
+    return _room(ROOM_BOXES, (ROOM_DROP,), x_range=(-1000.0, 7000.0), name="soak")
+
+
+def soak_core(safety_changes: dict[str, Any] | None = None) -> Any:
+    """The daemon's ``ControlCore`` as the soak runs it: the default configuration with the
+    joystick, :data:`SOAK_SAFETY` (then ``safety_changes``), and the thesis' stationary capture
+    instead of the shipped stream (36 000 stream clouds in the half hour do not fit CI)."""
+    from omnid.daemon.core import ControlCore
+    from omnid.sim.scenario import make_core as base
+
+    cfg = base(joystick=True).config
+    safety = dataclasses.replace(cfg.safety, **{**SOAK_SAFETY, **(safety_changes or {})})
+    perception = dataclasses.replace(cfg.perception, capture="stationary")
+    return ControlCore(dataclasses.replace(cfg, safety=safety, perception=perception))
+
+
+def soak_settings() -> Any:
+    """The soak's simulator settings: truth perception (the default physical laser's dots with
+    their true classes), the daemon's configured rates, nothing stored per frame."""
+    from omnid.sim.simulator import SimSettings
+
+    return SimSettings(
+        perception="truth",
+        physics_dt_s=0.02,
+        tilt_period_s=0.02,
+        record_period_s=0.2,
+        record_seen=False,
+        stop_on_contact=False,
+    )
 
 
 def clutter(kind: RiderKind, seed: int, duration_s: float = 600.0) -> Trial:
@@ -452,20 +510,37 @@ class TrialResult:
     hazard_to_limit_s: float  # hazard seen and in range → first limited command (nan, inf)
     stop_to_standstill_s: float  # first stop reason → standstill (nan: none)
     passed: bool | None  # through the opening (None: no opening)
-    min_speed_in_opening_mm_s: float  # nan: never in it
-    stood_in_opening: bool
+    min_speed_in_opening_mm_s: float  # true mean wheel speed, slowest in it (nan: never in it)
+    # passages (module docstring): the safety layer's stops before the chair got through —
+    # events, those that began with the true footprint within the slow zone of the passage
+    # (at the door), seconds, the reasons (control steps with each), and the least true
+    # clearance (mm) to the passage at an event's start (nan: none)
+    safety_stops: int
+    safety_stops_at_door: int
+    safety_stop_s: float
+    safety_stop_reasons: dict[str, int]
+    safety_stop_clearance_mm: float
+    min_allowed_in_opening_mm_s: float  # forward speed the daemon allowed, slowest in it
+    rider_own_s: float  # in it, the rider asking no travel: a pause or a turn in place
     distance_m: float
     refusals: dict[str, int]  # control steps with each refusal reason
     false_stop_reasons: dict[str, int]  # control steps of false stops with each reason
     wall_s: float
 
 
+#: The columns of ``_RecordingCore.trace`` (one row per control step).
+TRACE_COLUMNS = ("t_s", "forward", "turn", "asked", "refused", "limited", "allowed_v_mm_s",
+                 "decision_clearance_mm")  # fmt: skip
+
+
 class _RecordingCore:
-    """Mixin for ``ControlCore``: keeps, per control step, the rider's (forward, turn), whether
-    the rider asked to move, and whether the safety layer refused or limited the command."""
+    """Mixin for ``ControlCore``: keeps, per control step (:data:`TRACE_COLUMNS`), the rider's
+    (forward, turn), whether the rider asked to move, whether the safety layer refused the
+    command (limited it to zero: a **safety stop**) or limited it, the forward speed it allowed
+    (mm/s; 0 when it decided nothing) and its clearance (mm)."""
 
     def _record_init(self) -> None:
-        self.trace: list[tuple[float, float, float, bool, bool, bool]] = []
+        self.trace: list[tuple[float, ...]] = []
 
     def step(self, now_s: float) -> Any:
         cmd = super().step(now_s)  # type: ignore[misc]
@@ -474,7 +549,9 @@ class _RecordingCore:
         asked = (not dem.stop) and (dem.forward != 0.0 or dem.turn != 0.0)
         refused = asked and ((dec is not None and dec.stopped) or "bump" in _names(rep.reasons))
         limited = asked and dec is not None and dec.scale < 1.0 and bool(dec.reasons)
-        self.trace.append((now_s, dem.forward, dem.turn, asked, refused, limited))
+        v = dec.v_mm_s if dec is not None else 0.0
+        clear = dec.clearance_mm if dec is not None else math.nan
+        self.trace.append((now_s, dem.forward, dem.turn, asked, refused, limited, v, clear))
         return cmd
 
 
@@ -632,7 +709,7 @@ def simulate(
     w0 = time.perf_counter()
     result = sim.run(trial.duration_s)
     wall = time.perf_counter() - w0
-    trace = np.array(core.trace, dtype=np.float64).reshape(-1, 6)
+    trace = np.array(core.trace, dtype=np.float64).reshape(-1, len(TRACE_COLUMNS))
     st = result.steps
     n = min(len(trace), len(st))
     return sim, result, trace[:n], st[:n], wall
@@ -647,6 +724,11 @@ def false_stop_steps(
     for i in np.flatnonzero((trace[:, 4] > 0) & (np.abs(st[:, 5]) < STANDSTILL_MM_S)):
         false[i] = way_clear(st[i, 2:5], trace[i, 1], trace[i, 2], outline, core)
     return false
+
+
+def _run_starts(mask: NDArray[np.bool_]) -> NDArray[np.intp]:
+    """Indices where a run of True in ``mask`` begins (one per event of consecutive steps)."""
+    return np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8)])) == 1)
 
 
 def run_trial(
@@ -667,16 +749,16 @@ def run_trial(
     everything = _rects(trial.course)
     outline = _outline(everything)
     false = false_stop_steps(trace, st, outline, core)
-    starts = np.flatnonzero(np.diff(np.concatenate([[0], false.astype(np.int8)])) == 1)
+    starts = _run_starts(false)
     events = len(starts)
     unseen = sum("unknown_stop" in result.reasons_at(int(i)) for i in starts)
     period = float(np.median(np.diff(st[:, 0]))) if n > 1 else 0.02
     # hazards
-    stop_clear = min_clear = math.nan
+    stop_clear_end = min_clear = math.nan
     to_limit = to_still = math.nan
     if trial.hazard:
         hz = _rects(trial.course, trial.hazard)
-        stop_clear = footprint_clearance_mm(poses[-1], hz)
+        stop_clear_end = footprint_clearance_mm(poses[-1], hz)
         min_clear = min(footprint_clearance_mm(p, hz) for p in poses[:: max(1, n // 400)])
         seen_s = _dot_times(sim, trial, result) if trial.response else np.zeros(0)
         sf = core.config.safety
@@ -716,18 +798,41 @@ def run_trial(
         if len(stops):
             to_still = result.time_to_standstill(float(st[stops[0], 0]), STANDSTILL_MM_S)
     passed: bool | None = None
-    min_in = math.nan
-    stood = False
+    min_in = min_allowed = stop_clear = math.nan
+    n_stops, near_stops, stop_s, own_s = 0, 0, 0.0, 0.0
+    stop_reasons: dict[str, int] = {}
     if trial.opening is not None and trial.goal_x_mm is not None:
-        passed = bool(poses[:, 0].max() > trial.goal_x_mm)
+        beyond = np.flatnonzero(poses[:, 0] > trial.goal_x_mm)
+        passed = bool(len(beyond))
+        until = int(beyond[0]) if passed else n  # the steps before the chair got through
         x0, x1 = trial.opening
         c = np.cos(poses[:, 2])
         front = poses[:, 0] + FOOTPRINT[0] * c
         rear = poses[:, 0] - FOOTPRINT[1] * c
         inside = (front > x0) & (rear < x1)
+        inside[until:] = False
+        # a safety stop: the rider asked to move and the safety layer limited it to zero
+        refused = trace[:, 4] > 0
+        refused[until:] = False
+        stop_starts = _run_starts(refused)
+        n_stops = len(stop_starts)
+        stop_s = float(refused.sum()) * period
+        for i in np.flatnonzero(refused):
+            for r_name in result.reasons_at(int(i)):
+                stop_reasons[r_name] = stop_reasons.get(r_name, 0) + 1
+        if n_stops:
+            hz_p = _rects(trial.course, trial.hazard)
+            at = [footprint_clearance_mm(poses[int(i)], hz_p) for i in stop_starts]
+            stop_clear = min(at)
+            near_stops = sum(a <= core.config.safety.slow_distance_mm for a in at)
         if np.any(inside):
             min_in = float(speed[inside].min())
-            stood = bool(np.any(inside & (speed < STANDSTILL_MM_S) & (trace[:, 3] > 0)))
+            # the rider's own: no travel asked (a pause, or a head rider's turn in place)
+            own = inside & ((trace[:, 3] == 0) | (trace[:, 1] == 0.0))
+            own_s = float(own.sum()) * period
+            fwd = inside & (trace[:, 3] > 0) & (trace[:, 1] > 0.0)
+            if np.any(fwd):
+                min_allowed = float(trace[fwd, 6].min())
     refusal_counts: dict[str, int] = {}
     for i in np.flatnonzero(trace[:, 4] > 0):
         for name in result.reasons_at(int(i)):
@@ -739,7 +844,8 @@ def run_trial(
     return TrialResult(
         trial.scenario, trial.rider, trial.seed, perception, result.duration_s,
         len(sim.chair.bump_log), len(result.falls), events, float(false.sum()) * period, unseen,
-        stop_clear, min_clear, to_limit, to_still, passed, min_in, stood,
+        stop_clear_end, min_clear, to_limit, to_still, passed, min_in, n_stops, near_stops, stop_s,
+        stop_reasons, stop_clear, min_allowed, own_s,
         result.distance_mm / 1000.0, refusal_counts, false_reasons, wall,
     )  # fmt: skip
 

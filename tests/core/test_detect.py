@@ -266,3 +266,15 @@ def test_a_motion_compensated_mask_leaves_no_row_of_dots_along_the_rim(move_mm):
     d = np.hypot(found[:, None, 0] - truth[None, :, 0], found[:, None, 1] - truth[None, :, 1])
     assert (d.min(axis=0) < 1.5).mean() >= 0.99
     assert (d.min(axis=1) >= 1.5).sum() <= 3
+
+
+def test_noise_sigma_histogram_is_the_median_of_the_differences() -> None:
+    """The int16 path (an 8-bit saturated histogram, counted in full when the median reaches
+    255) gives the float path's np.median, at every noise level."""
+    from omnid.core.detect import _noise_sigma
+
+    rng = np.random.default_rng(12)
+    for scale in (0.0, 1.0, 8.0, 150.0, 400.0, 3000.0):
+        for shape in ((3, 5), (70, 640), (200, 33)):
+            d = np.clip(rng.normal(0.0, scale, shape), -32768, 32767).astype(np.int16)
+            assert _noise_sigma(d) == _noise_sigma(d.astype(np.float32))

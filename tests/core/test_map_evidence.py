@@ -168,6 +168,34 @@ def test_a_ray_through_a_kept_phantom_carves_it_a_real_box_stays():
     assert len(m.obstacle_points) > 5
 
 
+def test_a_phantom_between_the_mirrors_and_the_nearest_dots_is_carved_too():
+    """A phantom on the steepest rays 380 mm ahead of the axle (the footprint's front margin,
+    nearer than any dot lands) stopped the chair at clearance 0 for as long as it stood: the
+    carving looked only near the dots, and a phantom patch's fill (cells with no dot of their
+    own) outlived its carved dots. The rays pass through them on their way to the floor."""
+    m = FreeSpaceMap()
+    floor = capture(World())
+    near = np.argsort(floor.xyz[:, 0] + 0.3 * np.abs(floor.xyz[:, 1]))[:3]
+    ph = np.array([floor.xyz[k] * ((380.0 - MOUNT.x_offset_mm) / floor.xyz[k, 0]) for k in near])
+    for _ in range(2):  # confirmed (two captures in a row)
+        m.update(points(ph, [PointClass.OBSTACLE] * 3), MOUNT.x_offset_mm)
+    spot = np.column_stack([ph[:, 0] + MOUNT.x_offset_mm, -ph[:, 1]])
+    assert np.all(m.state_at(spot) == CellState.OBSTACLE)
+    m.update(floor, MOUNT.x_offset_mm)
+    assert np.all(m.state_at(spot) != CellState.OBSTACLE)
+    assert len(m.obstacle_points) == 0
+    # a phantom patch on the two nearest lattice rows: the fill between its dots (no dot of its
+    # own, nothing else clears it there) goes with the dots that made it
+    m = FreeSpaceMap()
+    rx = floor.xyz[:, 0] + MOUNT.x_offset_mm
+    patch = floor.xyz[(rx < rx.min() + 150.0) & (np.abs(floor.xyz[:, 1]) < 250.0)] * 0.6
+    for _ in range(2):
+        m.update(points(patch, [PointClass.OBSTACLE] * len(patch)), MOUNT.x_offset_mm)
+    assert np.count_nonzero(m.grid.states == CellState.OBSTACLE) > len(patch)  # filled between
+    m.update(floor, MOUNT.x_offset_mm)
+    assert np.count_nonzero(m.grid.states == CellState.OBSTACLE) == 0
+
+
 def test_a_cell_seen_again_keeps_its_recent_points_not_only_the_latest_captures():
     # Dots on one obstacle cell: two captures (an obstacle needs two) at its near side, the
     # next 40 mm farther back (the dots fall anywhere on a face). The near edge must stay where it was

@@ -225,7 +225,7 @@ def test_beams_near_finds_exactly_the_floor_points_within_each_radius(installed)
             ]
         )
         radius = rng.uniform(1.0, 150.0, 400)
-        q, k = _beams_near(tr, xy, radius)
+        q, k = _beams_near(tr, xy[:, 0], xy[:, 1], radius)
         d = np.hypot(fl[None, :, 0] - xy[:, None, 0], fl[None, :, 1] - xy[:, None, 1])
         want_q, want_k = np.nonzero(d <= radius[:, None])
         order = np.lexsort((tr.x_rank[want_k], want_q))

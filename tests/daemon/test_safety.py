@@ -282,6 +282,50 @@ def test_cell_straddling_the_footprint_edge_blocks_only_motion_towards_it():
     assert layer.check(g, -100.0, 0.0, 0.1).scale == 1.0  # backing away from it
 
 
+def test_a_turns_swing_needs_its_stopping_distance_the_leading_face_the_stop_zone():
+    """A wall along the chair's right side, 100 mm beyond its side margin: turning left in
+    place swings the tail towards it (no leading face), allowed as fast as the tail can still
+    stop (reaction time, then braking) ``swing_buffer_mm`` before it — not refused 150 mm of
+    travel early; the tail within that buffer and stopping distance: refused. The same gap
+    ahead of the leading face keeps the stop zone. Never-seen floor beside the chair: the
+    swing never enters a cell of it (each cell by its whole extent)."""
+    half = 0.5 * S.footprint_width_mm + S.side_margin_mm
+
+    def beside(gap_mm: float, state: CellState = CellState.OBSTACLE) -> OccupancyGrid:
+        g = free_grid()
+        xs, ys = g.cell_centers()
+        band = (ys < -half - gap_mm) & (ys > -half - gap_mm - 100.0)
+        g.states[np.ix_(np.abs(xs) < 1500.0, band)] = state
+        return g
+
+    layer = SafetyLayer(S)
+    g = beside(100.0)
+    lead, _, swing, state = layer.contacts(g, 0.0, 0.3)
+    assert math.isinf(lead) and state is CellState.OBSTACLE and 60.0 < swing < 150.0
+    d = layer.check(g, 0.0, 0.3, perception_age_s=0.1)
+    assert not d.stopped and d.scale < 1.0 and Reason.APPROACH in d.reasons
+    # the tail as fast as it can still stop the buffer before the wall, not faster
+    fast = layer.r_max_mm * abs(d.omega_rad_s)
+    room = swing - S.swing_buffer_mm
+    assert layer.swing_stop_mm(fast) <= room + 1e-6 < layer.swing_stop_mm(fast * 1.05)
+    # within the buffer (and the stopping distance from the approach's least speed): refused
+    assert SafetyLayer(S).check(beside(10.0), 0.0, 0.3, perception_age_s=0.1).stopped
+    # turning the other way swings the tail away: free
+    assert SafetyLayer(S).check(g, 0.0, -0.3, perception_age_s=0.1).scale == 1.0
+    # the same gap ahead of the leading face: the stop zone
+    ahead = free_grid()
+    wall(ahead, S.footprint_front_mm + S.margin_mm + 100.0)
+    assert SafetyLayer(S).check(ahead, 150.0, 0.0, perception_age_s=0.1).stopped
+    # never seen beside the chair: the swing is refused once a cell's extent is within the
+    # stopping distance of the chair itself (no margin: that is for things seen), slowed before
+    # (unknown_ahead) as for a seen obstacle
+    side = S.side_margin_mm
+    near_unseen = SafetyLayer(S).check(beside(10.0 - side, CellState.UNKNOWN), 0.0, 0.3, 0.1)
+    assert near_unseen.stopped and Reason.UNKNOWN_STOP in near_unseen.reasons
+    far_unseen = SafetyLayer(S).check(beside(60.0 - side, CellState.UNKNOWN), 0.0, 0.3, 0.1)
+    assert not far_unseen.stopped and Reason.UNKNOWN_AHEAD in far_unseen.reasons
+
+
 def test_openings_narrower_than_the_chair_and_its_side_margins_are_refused():
     """The shipped chair (700 mm) with its 25 mm side margins needs 750 mm: a door frame just
     ahead of the bumper, its jambs exact points (pipeline evidence), with the chair centred and

@@ -55,17 +55,23 @@ def test_bench_drives_forward_and_stops_on_ctrl_c(tmp_path: Path, capsys) -> Non
             c.settimeout(2.0)
             # a key holds 0.5 s; key repeat renews it — until the bench's status line shows
             # the chair 150 mm on: forward needs perception younger than 0.3 s, and on a loaded
-            # machine the niced worker's clouds come late and the chair waits (as it should)
+            # machine the niced worker's clouds come late and the chair waits (as it should);
+            # a fault there (a control-unit status late under load) disarms the
+            # chair until the key is let go, as a rider would: then it lets go for a second
             x_mm, end = 0.0, time.monotonic() + 40.0
             while x_mm <= 150.0 and time.monotonic() < end:
                 c.sendall(b"forward\n")
                 assert c.recv(64).startswith(b"ok")
                 time.sleep(0.25)
+                release = False
                 while not out.empty():
                     line = out.get()
                     lines.append(line)
                     if m := re.match(r"t=\s*\S+ s chair \((-?\d+),", line):
                         x_mm = float(m.group(1))
+                    release |= "refused until keyboard is released" in line
+                if release:
+                    time.sleep(1.0)
         time.sleep(1.0)
         p.send_signal(signal.SIGINT)
         p.wait(timeout=40)
@@ -81,7 +87,7 @@ def test_bench_drives_forward_and_stops_on_ctrl_c(tmp_path: Path, capsys) -> Non
         r"bench stopped \(SIGINT\): daemon exit status 0, chair at \((-?\d+), (-?\d+)\)", rest
     )
     assert m, rest
-    assert int(m.group(1)) > 150  # it drove forward (from x = 0)
+    assert int(m.group(1)) > 150, rest[-4000:]  # it drove forward (from x = 0)
     assert "contacts 0" in rest
     assert not (folder / "ttyCU").exists() and not (folder / "ttyTilt").exists()
     assert not (folder / "frames.sock").exists()

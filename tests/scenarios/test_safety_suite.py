@@ -40,13 +40,18 @@ def test_turning_beside_an_unseen_wall_never_swings_the_tail_into_it(kind):
 @pytest.mark.parametrize(("width", "seed"), [(900, 0), (900, 1), (780, 0)])
 def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refused(width, seed):
     """Truth perception, the joystick steering through from 3.5 m off (±10°, ±80 mm): a 900 mm
-    doorway is passed and never stood in; a 780 mm one (the chair 700 + 2 × 25 side margin +
-    the rider's aim) is never touched. (One trial per test: the suite's workers share them.)"""
-    r = run_trial(SCENARIOS[f"doorway {width} mm"]("joystick", seed))
+    doorway is passed without a safety stop at the door; a 780 mm one (the chair 700 + 2 × 25 side margin +
+    the rider's aim) is never touched. (One trial per test: the suite's workers share them.)
+    32 s of the trial's 60: the 900 mm door is passed by ~25 s, the chair stands before the
+    780 mm one from ~21 s."""
+    trial = dataclasses.replace(SCENARIOS[f"doorway {width} mm"]("joystick", seed), duration_s=32.0)
+    r = run_trial(trial)
     assert r.contacts == 0, seed
     if width == 900:
-        assert r.passed and not r.stood_in_opening, seed
-        assert r.min_speed_in_opening_mm_s > 80.0
+        # no safety stop at the door (the first steering after the straight start may be refused
+        # for a moment, 1.7 m before it: the floor beside the tail at start-up was never seen)
+        assert r.passed and r.safety_stops_at_door == 0, (seed, r.safety_stop_reasons)
+        assert r.min_speed_in_opening_mm_s > 80.0 and r.min_allowed_in_opening_mm_s > 80.0
 
 
 @pytest.mark.parametrize("kind", ["joystick", "tilt"])

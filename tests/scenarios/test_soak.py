@@ -36,46 +36,31 @@ each was logged, and no memory growth: resident memory is sampled 90 times a run
 after a warm-up of a third of the run must stay under 100 kB per simulated minute (50 kB for
 the half hour; a leak of one small array per control step would be 50x that).
 
-Not met on this laser (issue 13): with ``--soak-minutes 30`` the chair is wedged after minute 10
-(reach 192 and 173 mm in the last two windows, rider seed 7): the liveness assertion fails there;
-the 5 minutes of CI (and 10) pass. Seed 7's half hour has three contacts (box 7, turning in place at
-17-33 mm/s wheel speed), duty 0 0.01-1.1 s after each; none was counted as a bump, none could be told by
-the clocks in time.
+Not met (issue 13), measured with the swing model (2026-12-02): ``--soak-minutes 30`` passes
+at rider seed 7 (19.5 m, reaches 2908/3796/2468 mm in the three windows, 2 contacts, 1 counted
+as a bump); seeds 3 and 11 (run by hand, same setup) wedge in the last window (reaches
+5201/205/279 and 2437/1836/0 mm). Seed 11's wedge: having crept over unseen floor, the tail's
+corner stands 10 mm from a wall that runs across behind it and a box is 50 mm ahead; every move
+the rider asks is refused: reversing closes on the wall, forward arcs trade the margin to the box,
+a left turn drives the corner into the wall, and the right turn that would open it fails the
+escape test point by point (the corner's noisy wall points dip the gap by more than
+``escape_tolerance_mm``; a wall point behind the tail comes nearer inside the margin).
+docs/benchmarks.md, "The soak wedge". The shipped policy (refuse the unseen) would not have
+crept there.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from pathlib import Path
 
 import numpy as np
-from scenario_helpers import make_core, room
 
-from omnid.daemon.core import ControlCore
 from omnid.daemon.motion import StallDetector
 from omnid.daemon.safety import Reason
 from omnid.sim.rider import random_ride
-from omnid.sim.simulator import SimSettings, Simulator
-from omnid.sim.suite import ROOM_BOXES, ROOM_DROP
-
-ESCAPE_SPEED_MM_S = 40.0
-
-
-def cluttered_room():
-    return room(ROOM_BOXES, (ROOM_DROP,), length_mm=8000.0)
-
-
-def soak_settings() -> SimSettings:
-    """Configured daemon rates (control and perception periods from the core's config)."""
-    return SimSettings(
-        perception="truth",
-        physics_dt_s=0.02,
-        tilt_period_s=0.02,
-        record_period_s=0.2,
-        record_seen=False,
-        stop_on_contact=False,
-    )
+from omnid.sim.simulator import Simulator
+from omnid.sim.suite import soak_core, soak_course, soak_settings
 
 
 def _rss_mb() -> float:
@@ -116,23 +101,13 @@ def test_soak_random_riding_at_the_configured_rates(request):
         if not rss or now_s >= rss[-1][0] + sample_s:
             rss.append((now_s, _rss_mb()))
 
-    core = make_core(joystick=True)
-    # escape moves on (off by default, docs/daemon.md): without them the chair is stranded in
-    # a pocket after 9 minutes
-    cfg = core.config  # type: ignore[attr-defined]
-    # The thesis' stationary capture (a cloud every 0.5 s, staleness 1.5 s), not the shipped
+    # escape moves on and the unseen crossed at creep speed (omnid.sim.suite.SOAK_SAFETY), on
+    # the thesis' stationary capture (a cloud every 0.5 s, staleness 1.5 s), not the shipped
     # stream: the half hour is about the loop and its memory, and 36 000 stream clouds (each
     # a map update) do not fit CI; tools/soak.py runs the shipped configuration
-    safety = dataclasses.replace(
-        cfg.safety,
-        escape_speed_mm_s=ESCAPE_SPEED_MM_S,
-        unknown_policy="creep",
-        perception_timeout_s=1.5,
-    )
-    perception = dataclasses.replace(cfg.perception, capture="stationary")
-    core = ControlCore(dataclasses.replace(cfg, safety=safety, perception=perception))
+    core = soak_core()
     sim = Simulator(
-        cluttered_room(),
+        soak_course(),
         core,
         soak_settings(),
         joystick=random_ride(7, duration_s),
