@@ -35,6 +35,7 @@ Pixel convention: pixel (i, j) covers [i − 0.5, i + 0.5] × [j − 0.5, j + 0.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -611,11 +612,26 @@ def _dots_in_disk(
     pos = np.asarray(rc, dtype=np.float64).reshape(-1, 2)
     keep = cam.in_disk(pos) if len(pos) else np.zeros(0, dtype=bool)
     f = np.ones(len(pos)) if flux is None else np.broadcast_to(np.asarray(flux, float), len(pos))
+    return pos[keep], f[keep], disk_mask(cam)
+
+
+def disk_mask(cam: MirrorCamera) -> NDArray[np.bool_]:
+    """(rows, cols) bool: the pixels inside the camera's mirror disk (read-only, computed once
+    per camera)."""
     rows, cols = cam.image_shape
-    dr = np.arange(rows, dtype=np.float32)[:, None] - np.float32(cam.center_row_px)
-    dc = np.arange(cols, dtype=np.float32)[None, :] - np.float32(cam.center_col_px)
-    disk = (dr * dr + dc * dc) <= np.float32(cam.disk_radius_px**2)
-    return pos[keep], f[keep], disk
+    return _disk_mask(rows, cols, cam.center_row_px, cam.center_col_px, cam.disk_radius_px)
+
+
+@functools.lru_cache(maxsize=16)
+def _disk_mask(
+    rows: int, cols: int, center_row_px: float, center_col_px: float, radius_px: float
+) -> NDArray[np.bool_]:
+    """:func:`disk_mask`, by the camera's numbers."""
+    dr = np.arange(rows, dtype=np.float32)[:, None] - np.float32(center_row_px)
+    dc = np.arange(cols, dtype=np.float32)[None, :] - np.float32(center_col_px)
+    disk = (dr * dr + dc * dc) <= np.float32(radius_px**2)
+    disk.flags.writeable = False
+    return disk
 
 
 def _spot_draws(
