@@ -12,8 +12,11 @@ configuration:
   model, as every pipeline scenario renders; ``stream/floor``, ``stream/tiles``: the other
   texture settings; ``stream/demo``: the demo course (the story test's world);
 - ``stream/realistic``: realistic spots and sensor (halos, ghosts, shot noise);
-- ``capture``: :func:`omnid.sim.render.render_hits` (render.py's mask/base pair with the scene
-  fixed to the camera: the installer's captures, the snapshot and stationary policies).
+- ``capture``: :func:`omnid.sim.render.render_hits` (render.py's mask/base pairs, the scene
+  fixed to the camera and drawn from the seed: the installer's captures, the detection tests);
+  ``capture/fixed``: :func:`~omnid.sim.render.render_camera_pair` with a fixed scene seed, as
+  :meth:`omnid.sim.simulator.Simulator.render` draws the snapshot and stationary policies'
+  captures and the frame server's frames.
 
 Each revision runs in its own child process on one core (cv2.setNumThreads(1), one BLAS thread),
 alternating ``--rounds`` times (the machine may be shared: the load average is printed; compare
@@ -66,7 +69,7 @@ def _worker(frames: int, out_path: str) -> None:
     from omnid.sim.camera import CameraModel, SimCamera, SimFrame
     from omnid.sim.course import WALL_MM, builtin_course, walls
     from omnid.sim.laser import LaserProjector
-    from omnid.sim.render import RenderOptions, render_hits
+    from omnid.sim.render import RenderOptions, render_camera_pair, render_hits
     from omnid.sim.rigs import misaligned_rig
     from omnid.sim.world import Box, RigMount, World, cast_laser
 
@@ -91,6 +94,7 @@ def _worker(frames: int, out_path: str) -> None:
         "stream/demo": (CameraModel(), RenderOptions(), demo.world, demo_extent),
         "stream/realistic": (CameraModel(), RenderOptions.realistic(), room, extent),
         "capture": (None, RenderOptions(), room, extent),
+        "capture/fixed": (None, RenderOptions(), room, extent),
     }
     plan = _frames(frames)
     result: dict[str, dict[str, object]] = {}
@@ -109,12 +113,28 @@ def _worker(frames: int, out_path: str) -> None:
                 for img in images:
                     digest.update(np.ascontiguousarray(img).tobytes())
         else:
-            render_hits(rig, hits[0], 1, options)  # warm-up
-            for (_, _, seed), h in zip(plan, hits, strict=True):
+            fixed = name == "capture/fixed"
+            for k, ((_, _, seed), h) in enumerate(
+                zip([plan[0], *plan], [hits[0], *hits], strict=True)
+            ):
                 t0 = time.process_time()
-                cap = render_hits(rig, h, seed, options)
+                if fixed:  # as Simulator.render: the camera's own scene, the same every time
+                    rng = np.random.default_rng(seed)
+                    shots: list[np.ndarray] = []
+                    for i, (cam, vis) in enumerate(
+                        ((rig.cam1, h.visible1), (rig.cam2, h.visible2))
+                    ):
+                        xyz = h.xyz[vis]
+                        shots += render_camera_pair(
+                            cam, cam.project(xyz), options, rng, None, i + 1
+                        )
+                else:
+                    cap = render_hits(rig, h, seed, options)
+                    shots = [cap.mask1, cap.base1, cap.mask2, cap.base2]
+                if k == 0:  # warm-up
+                    continue
                 per_frame.append(time.process_time() - t0)
-                for img in (cap.mask1, cap.base1, cap.mask2, cap.base2):
+                for img in shots:
                     digest.update(np.ascontiguousarray(img).tobytes())
         ms = sorted(1e3 * t for t in per_frame)
         result[name] = {
