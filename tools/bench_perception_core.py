@@ -144,7 +144,8 @@ def interleaved(
     times each after one warm-up each (the machine's load falls on both alike)."""
     fa()
     fb()
-    ta, tb = [], []
+    ta: list[float] = []
+    tb: list[float] = []
     for _ in range(repeats):
         for fn, out in ((fa, ta), (fb, tb)):
             t0 = time.perf_counter()
@@ -204,17 +205,8 @@ def bench_laser(name: str, repeats: int, old_root: str | None, split: bool = Fal
     calib = calibrate_installed(rig, laser, seed=99, options=opts)
     cap = render_capture(rig, xyz, opts, seed=3)
     cloud = perceive(cap, calib, "best")
-    true_px = rig.project(xyz)
-    d = np.hypot(
-        cloud.pixels[:, None, 0] - true_px[None, :, 0],
-        cloud.pixels[:, None, 1] - true_px[None, :, 1],
-    )
-    d2 = np.hypot(
-        cloud.pixels[:, None, 2] - true_px[None, :, 2],
-        cloud.pixels[:, None, 3] - true_px[None, :, 3],
-    )
-    right = int(((d < 1.5) & (d2 < 1.5)).any(axis=1).sum())
-    n_vis = int(rig.visible(true_px).sum())
+    right = right_points(rig, xyz, cloud)
+    n_vis = int(rig.visible(rig.project(xyz)).sum())
     print(
         f"\n## laser {name}: dots cast {len(xyz)}; visible in both cameras {n_vis}; "
         f"perceived points {len(cloud.xyz)}, right {right}"
