@@ -714,15 +714,18 @@ def _fit_point_to_lines(
     return inv @ b, inv
 
 
-def locate_source(
+def source_candidates(
     rig: StereoRig,
     floor_mm: NDArray[np.float64],
     extras: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
     sigma_px: float,
     settings: CalibrationSettings | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, float]]:
-    """The laser's source O (3,), its 1-σ per axis (3,) mm and residuals, from the dots (d1, d2)
-    of extra captures (see the module docstring, step 6).
+) -> list[tuple[NDArray[np.float64], NDArray[np.float64], dict[str, float]]]:
+    """The points the extras' dots' lines meet (see the module docstring, step 6), each
+    refined as (O (3,), its 1-σ per axis (3,) mm, residuals): the vote's winner first, then
+    the best point elsewhere (beyond 25 mm) when enough lines pass it too — another reading
+    of the same dots (on one plane, a pairing shifted by a beam gives another plane from
+    another source), for the caller to judge by how well each explains the captures.
 
     Raises :class:`CalibrationError` when the extras show fewer than ``min_source_dots`` dots
     off the floor, or when no point is passed by the lines of that many dots.
@@ -787,14 +790,73 @@ def locate_source(
         max(kx - rad, 0) : kx + rad + 1,
     ] = 0.0
     runner_up = float(rest.max()) / peak if peak > 0 else 1.0
-    o = np.array(
-        [
-            kx * cell - box[0] + SOURCE_PRIOR_MM[0],
-            ky * cell - box[1] + SOURCE_PRIOR_MM[1],
-            zs[kz],
-        ]
-    )
-    # Refine: each dot's nearest line, inliers within a shrinking tolerance, weighted LS.
+
+    def cell_point(k: tuple[int, int, int]) -> NDArray[np.float64]:
+        kz_, ky_, kx_ = k
+        return np.array(
+            [
+                kx_ * cell - box[0] + SOURCE_PRIOR_MM[0],
+                ky_ * cell - box[1] + SOURCE_PRIOR_MM[1],
+                zs[kz_],
+            ]
+        )
+
+    starts = [cell_point((int(kz), int(ky), int(kx)))]
+    if runner_up > 0:
+        second = np.unravel_index(int(np.argmax(rest)), rest.shape)
+        starts.append(cell_point((int(second[0]), int(second[1]), int(second[2]))))
+    found: list[tuple[NDArray[np.float64], NDArray[np.float64], dict[str, float]]] = []
+    for n_start, o in enumerate(starts):
+        refined = _refine_source(o, q, p, sig_q, dot, cell, s.min_source_dots)
+        if refined is None:
+            if n_start == 0:
+                raise CalibrationError(
+                    f"the {n_off} dots off the floor in the extra captures do not point back to "
+                    f"one laser source (need {s.min_source_dots} dots that agree); are they "
+                    "captures of this rig, with the laser unmoved since the floor capture?"
+                )
+            continue
+        o, sigma_o, line_rms, n_in = refined
+        if any(np.linalg.norm(o - f[0]) <= 25.0 for f in found):
+            continue  # (refined back to a point already found)
+        info = {
+            "source_dots": float(n_in),
+            "source_off_floor_dots": float(n_off),
+            "source_line_rms_mm": line_rms,
+            "source_runner_up": runner_up,
+        }
+        found.append((o, sigma_o, info))
+    return found
+
+
+def locate_source(
+    rig: StereoRig,
+    floor_mm: NDArray[np.float64],
+    extras: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    sigma_px: float,
+    settings: CalibrationSettings | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, float]]:
+    """The laser's source O (3,), its 1-σ per axis (3,) mm and residuals, from the dots (d1, d2)
+    of extra captures (see the module docstring, step 6): the point most dots' lines meet.
+
+    Raises :class:`CalibrationError` when the extras show fewer than ``min_source_dots`` dots
+    off the floor, or when no point is passed by the lines of that many dots.
+    """
+    return source_candidates(rig, floor_mm, extras, sigma_px, settings)[0]
+
+
+def _refine_source(
+    o: NDArray[np.float64],
+    q: NDArray[np.float64],
+    p: NDArray[np.float64],
+    sig_q: NDArray[np.float64],
+    dot: NDArray[np.intp],
+    cell: float,
+    min_dots: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int] | None:
+    """From a voted point ``o``: each dot's nearest line, inliers within a shrinking tolerance,
+    weighted least squares. (O, its 1-σ per axis, the lines' rms distance, inliers), or None
+    when fewer than ``min_dots`` dots' lines pass it."""
     tol = 3.0 * cell
     inl = np.zeros(0, dtype=np.intp)
     inv = np.eye(3)
@@ -807,28 +869,18 @@ def locate_source(
         first = np.concatenate([[True], dot[order][1:] != dot[order][:-1]])
         cand = order[first]
         cand = cand[dist[cand] < np.maximum(tol, 4.0 * sig_line[cand])]
-        if len(cand) < s.min_source_dots:
+        if len(cand) < min_dots:
             break
         inl = cand
         w = 1.0 / sig_line[inl] ** 2
         o, inv = _fit_point_to_lines(q[inl], p[inl], w)
         tol = max(tol / 2.0, 1.0)
-    if len(inl) < s.min_source_dots:
-        raise CalibrationError(
-            f"the {n_off} dots off the floor in the extra captures do not point back to one "
-            f"laser source (best: {len(inl)} dots agree, need {s.min_source_dots}); are they "
-            "captures of this rig, with the laser unmoved since the floor capture?"
-        )
+    if len(inl) < min_dots:
+        return None
     dist = _line_distance(o, q[inl], p[inl])
     chi2 = float(np.sum(w * dist**2)) / max(len(inl) - 3, 1)
     sigma_o = np.sqrt(np.diag(inv) * max(chi2, 1.0))
-    info = {
-        "source_dots": float(len(inl)),
-        "source_off_floor_dots": float(n_off),
-        "source_line_rms_mm": float(np.sqrt(np.mean(dist**2))),
-        "source_runner_up": runner_up,
-    }
-    return o, sigma_o, info
+    return o, sigma_o, float(np.sqrt(np.mean(dist**2))), len(inl)
 
 
 def _beams_off_floor(
@@ -1026,25 +1078,33 @@ def calibrate_from_capture(
     residuals.update({"beams": float(len(floor_mm)), "beams_one_camera": float(singles)})
     if extras:
         extra_dots = [_detect(x, detection) for x in extras]
-        o, sig_o, info = locate_source(rig, floor_mm, extra_dots, sigma_px, s)
-        laser = laser.with_source(
-            (float(o[0]), float(o[1]), float(o[2])),
-            (float(sig_o[0]), float(sig_o[1]), float(sig_o[2])),
-        )
-        residuals.update(info)
-        more, more_sig = _beams_off_floor(rig, laser, extra_dots, sigma_px)
-        if len(more):
-            laser = LaserModel(
-                floor_depth_mm,
-                np.vstack([laser.floor_mm, more]),
-                np.concatenate([laser.floor_sigma_mm, more_sig]),
-                laser.source_mm,
-                laser.source_sigma_mm,
-                True,
+        # The vote's winner, and its runner-up when there is one: two readings of the same
+        # dots (on a plane, a pairing shifted by a beam gives another plane from another
+        # source; their votes can tie). The reading under which the matcher explains more of
+        # the extras' dots is kept (the winner on a tie).
+        readings: list[tuple[float, int, LaserModel, dict[str, float], dict[str, float]]] = []
+        for o, sig_o, info in source_candidates(rig, floor_mm, extra_dots, sigma_px, s):
+            placed = laser.with_source(
+                (float(o[0]), float(o[1]), float(o[2])),
+                (float(sig_o[0]), float(sig_o[1]), float(sig_o[2])),
             )
-        residuals["beams_off_floor"] = float(len(more))
-        residuals["beams"] = float(len(laser))
-        residuals.update(_extra_fit(rig, laser, sigma_px, extra_dots))
+            more, more_sig = _beams_off_floor(rig, placed, extra_dots, sigma_px)
+            if len(more):
+                placed = LaserModel(
+                    floor_depth_mm,
+                    np.vstack([placed.floor_mm, more]),
+                    np.concatenate([placed.floor_sigma_mm, more_sig]),
+                    placed.source_mm,
+                    placed.source_sigma_mm,
+                    True,
+                )
+            fit = _extra_fit(rig, placed, sigma_px, extra_dots)
+            info = {**info, "beams_off_floor": float(len(more)), "beams": float(len(placed))}
+            readings.append((fit["extra_matched_fraction"], -len(readings), placed, info, fit))
+        _, _, laser, info, fit = max(readings, key=lambda t: (t[0], t[1]))
+        residuals.update(info)
+        residuals.update(fit)
+        residuals["source_readings"] = float(len(readings))
         if residuals["extra_matched_fraction"] < s.min_extra_explained:
             raise CalibrationError(
                 f"the extra captures do not fit the laser the floor shows (only "

@@ -487,14 +487,10 @@ _FAR_CONTRAST = 0.9
 #: Outside the mirror's disk the camera sees its dark housing (SPEC §6): a mask-frame pixel
 #: darker than this (gray) is not the scene.
 _HOUSING_GRAY = 12.0
-#: A blend is split when two spots beat one by this much (twice the log-likelihood ratio,
-#: :func:`~omnid.core.spotfit.two_spot_test`): on the random rigs' floors 13 of 16 blends of
-#: beams ≥ 1.8 σ apart score 47–660, lone dots above 25 in 0.1 % (0.4 % of rim-stretched).
-_SPLIT_EVIDENCE = 25.0
-#: ... and its two spots lie this many image spot sigmas apart (closer: one observation, no
-#: fit tells them apart at the sensor's noise; farther: the smoothing shows two maxima).
+#: Two spots of a blob are split apart only this many image spot sigmas apart or more: closer,
+#: two round spots are one maximum of any smoothing (one observation: captures of the same
+#: pair split it or not by their noise, and calibration and the scene would disagree).
 _SPLIT_MIN_SIGMAS = 2.0
-_SPLIT_MAX_SIGMAS = 3.5
 #: Spots larger than this (sigma, px) get their own matched filter for the centres.
 _MATCHED_FROM_PX = 1.5
 #: The 3x3 neighbourhood of a peak and the least-squares solve of a quadratic through it:
@@ -738,12 +734,13 @@ def _detect_best(
     # Experimental (not the default; docs/benchmarks/rigs.md): two beams closer than the
     # smoothing resolves (a doubled beam) are one maximum — split where two spots explain the
     # light better than any one spot (:func:`_split_blends`).
-    split = np.zeros(len(rows), dtype=bool)
+    pair = fixed = np.zeros(len(rows), dtype=bool)
     if split_blends:
-        rows, cols, centre, r, c, clipped, split = _split_blends(
-            d, saturated, sm, rows, cols, centre, r, c, clipped, sigma, p.best_relative_peak
+        rows, cols, centre, r, c, clipped, pair, fixed = _split_blends(
+            d, saturated, sm, rows, cols, centre, r, c, clipped, sigma, p.best_relative_peak, noise
         )
-    split_r, split_c = r[split], c[split]
+    fixed_r, fixed_c = r[fixed], c[fixed]
+    pair_r, pair_c = r[pair], c[pair]
     # Dots the mirror's rim cuts (the housing outside the mirror is dark in the mask frame) are
     # centred on the pixels that see them.
     cut = _cut_by_rim(_laser_gray(mask, p.bgr_weights), rows + r0, cols + c0)
@@ -763,6 +760,7 @@ def _detect_best(
         r, c = np.where(moved, rows, r), np.where(moved, cols, c)
         rm, cm, _, _, ok = _log_quadratic(sm, rows, cols)
         r, c = np.where(ok, rm, r), np.where(ok, cm, c)  # else keep the 1 px filter's
+        r[pair], c[pair] = pair_r, pair_c  # (one maximum of the two: they start from the test's)
     filtered_var = sigma * sigma + smooth_px * smooth_px + 1.0 / 12.0
     # A neighbour's light pulls a filtered maximum toward it: taken back to first order where
     # the pull is small; where it is not, the dots are fitted (with their neighbours' light
@@ -773,6 +771,7 @@ def _detect_best(
         fit = np.ones(len(r), dtype=bool)
     else:
         pull_r, pull_c, fit = _neighbour_pull(r, c, sm[rows, cols], filtered_var, (h, w))
+        fit |= pair  # (a split blend's two spots: fitted jointly, from the test's centres)
         r[~fit] -= pull_r[~fit]
         c[~fit] -= pull_c[~fit]
     if saturated is not None and clipped.any() and sigma > _FIT_ALL_FROM_PX:
@@ -809,13 +808,118 @@ def _detect_best(
             noise,
             spotfit.window_half_px(sigma),
         )
-    # (a split blend's centres are the two-spot fit's: the one-spot refinements above do not
-    # apply to it)
-    r[split], c[split] = split_r, split_c
+    # (a blob whose second spot is no dot keeps the test's centre of its first)
+    r[fixed], c[fixed] = fixed_r, fixed_c
     if cut.any():
-        k = np.flatnonzero(cut & ~split)
+        k = np.flatnonzero(cut & ~pair & ~fixed)
         r[k], c[k] = _refine(d, top_rows[k], top_cols[k])
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
+
+
+def _pairs_near(
+    k: NDArray[np.intp], r: NDArray[np.float64], c: NDArray[np.float64], reach_px: float
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """(a, j): dot k[a] and another dot j at most ``reach_px`` apart (Euclidean), every such
+    pair: all pairs tested at once for a few dots k, else from the grid of
+    :func:`~omnid.core.spotfit.near_pairs`."""
+    if len(k) * len(r) <= 20000:
+        dr, dc = r[k][:, None] - r[None, :], c[k][:, None] - c[None, :]
+        close = dr * dr + dc * dc <= reach_px * reach_px
+        close[np.arange(len(k)), k] = False
+        a, j = np.nonzero(close)
+        return a.astype(np.intp), j.astype(np.intp)
+    i, j = spotfit.near_pairs(r, c, reach_px, sort=False)
+    local = np.full(len(r), -1, dtype=np.intp)
+    local[k] = np.arange(len(k))
+    a = local[i]
+    keep = (a >= 0) & (np.hypot(r[i] - r[j], c[i] - c[j]) <= reach_px)
+    return a.compress(keep), j.compress(keep)
+
+
+def _own_curvature(
+    sm: NDArray,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    top: NDArray,
+    filtered_var: float,
+    k: NDArray[np.intp],
+    pairs: tuple[NDArray[np.intp], NDArray[np.intp]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The principal variances (long, short; px²) of the smoothed light of dots ``k`` at their
+    maxima, its neighbours' light taken out, and the long axis (len(k), 2); ``pairs`` (a, j):
+    dot k[a] and a neighbour j (:func:`_pairs_near`).
+
+    The 3x3 log-quadratic of ``sm`` gives the Hessian of ln f at the maximum, i.e. H(f)/f
+    (the gradient vanishes there). Each neighbour j, a Gaussian of the filtered variance v
+    with its smoothed peak ``top`` at its own maximum, adds e_j·(x xᵀ/v² − I/v) to H(f) and
+    e_j to f at the distance x from it (e_j its light there); both are taken out, so a
+    neighbour 4 px away does not make a round spot look elongated."""
+    vals = _windows(sm, rows[k], cols[k], 1)
+    t = vals[4:5]
+    logs = np.log(np.maximum(vals, np.float32(1e-3) * np.maximum(t, np.float32(1e-3))))
+    _, _, _, qr, qc, qrc = (_Q_SOLVE32.T @ logs).astype(np.float64)
+    f = np.abs(top[k]).astype(np.float64)
+    hrr, hcc, hrc = 2.0 * qr * f, 2.0 * qc * f, qrc * f
+    a, j = pairs
+    xr = r[k].take(a) - r.take(j)
+    xc = c[k].take(a) - c.take(j)
+    e = np.abs(top.take(j)).astype(np.float64) * np.exp((xr * xr + xc * xc) * (-0.5 / filtered_var))
+    inv_v, inv_v2 = 1.0 / filtered_var, 1.0 / (filtered_var * filtered_var)
+    n = len(k)
+    hrr -= np.bincount(a, weights=e * (xr * xr * inv_v2 - inv_v), minlength=n)
+    hcc -= np.bincount(a, weights=e * (xc * xc * inv_v2 - inv_v), minlength=n)
+    hrc -= np.bincount(a, weights=e * (xr * xc * inv_v2), minlength=n)
+    own = np.maximum(f - np.bincount(a, weights=e, minlength=n), 0.05 * f)
+    hrr, hcc, hrc = hrr / own, hcc / own, hrc / own
+    mid = 0.5 * (hrr + hcc)
+    rad = np.sqrt(0.25 * (hrr - hcc) ** 2 + hrc * hrc)
+    flat, steep = mid + rad, mid - rad
+    v_long = np.where(flat < 0, -1.0 / np.minimum(flat, -1e-12), np.inf)
+    v_short = -1.0 / np.minimum(steep, -1e-12)
+    # the eigenvector of the flatter curvature
+    ar, ac = hrc, flat - hrr
+    norm = np.hypot(ar, ac)
+    degenerate = norm < 1e-12
+    ar = np.where(degenerate, 1.0, ar / np.where(degenerate, 1.0, norm))
+    ac = np.where(degenerate, 0.0, ac / np.where(degenerate, 1.0, norm))
+    return v_long, v_short, np.column_stack([ar, ac])
+
+
+@functools.lru_cache(maxsize=64)
+def _blend_elongation(filtered_var: float, separation_px: float, relative_peak: float) -> float:
+    """How elongated (long over short principal variance, as :func:`_log_quadratic` measures
+    it on the 3x3 pixels around the maximum) the smoothed light of the least separable blend
+    looks: two round spots of filtered variance ``filtered_var`` ``separation_px`` apart, the
+    dimmer ``relative_peak`` of the brighter. (To second order v / (1 − w(1 − w)·d²/v) with w
+    the dimmer's share of the light at the maximum; the 3x3 fit also sees the fourth order,
+    which makes a blend look rounder.) The least over the pair's orientation."""
+    half = 6
+    g = np.arange(-half, half + 1, dtype=np.float64)
+    rr, cc = np.meshgrid(g, g, indexing="ij")
+    least = math.inf
+    for angle in np.linspace(0.0, math.pi / 4.0, 4):
+        er, ec = math.cos(angle), math.sin(angle)
+        # the maximum: along the axis, by a fine search between the two spots
+        t = np.linspace(-0.5, 1.5, 2001) * separation_px
+        prof = np.exp(-(t**2) / (2 * filtered_var)) + relative_peak * np.exp(
+            -((t - separation_px) ** 2) / (2 * filtered_var)
+        )
+        t0 = float(t[np.argmax(prof)])
+        ar, ac = rr + t0 * er - np.rint(t0 * er), cc + t0 * ec - np.rint(t0 * ec)
+        img = np.exp(-(ar**2 + ac**2) / (2 * filtered_var)) + relative_peak * np.exp(
+            -((ar - separation_px * er) ** 2 + (ac - separation_px * ec) ** 2) / (2 * filtered_var)
+        )
+        # (the sampled maximum is at the grid's centre pixel or next to it)
+        k = np.unravel_index(int(np.argmax(img)), img.shape)
+        _, _, mean_var, max_var, ok = _log_quadratic(
+            img.astype(np.float32), np.array([k[0]]), np.array([k[1]])
+        )
+        if ok[0]:
+            min_var = 1.0 / (2.0 / mean_var[0] - 1.0 / max_var[0])
+            least = min(least, float(max_var[0] / min_var))
+    return least if math.isfinite(least) else 1.0
 
 
 def _split_blends(
@@ -830,6 +934,7 @@ def _split_blends(
     clipped: NDArray[np.bool_],
     sigma: float,
     relative_peak: float,
+    noise: float,
 ) -> tuple[
     NDArray[np.intp],
     NDArray[np.intp],
@@ -838,59 +943,103 @@ def _split_blends(
     NDArray[np.float64],
     NDArray[np.bool_],
     NDArray[np.bool_],
+    NDArray[np.bool_],
 ]:
-    """The candidates with every blend of two spots split in two, and which dots came from a
-    split (their centres are the two-spot fit's).
+    """The candidates with every blend of two spots split in two, which dots came from a
+    split (to be fitted jointly, :func:`~omnid.core.spotfit.fit_spots`, from the test's
+    centres), and which keep the test's centre (a blob whose second spot is no dot).
 
-    A candidate is tested (:func:`~omnid.core.spotfit.two_spot_test`) when its light is
-    elongated enough to hold two spots of the image's σ at least :data:`_SPLIT_MIN_SIGMAS`
-    apart, the dimmer at least ``relative_peak`` of the brighter (long-axis variance excess
-    ≥ w(1 − w)·d² of those; clipped pixels are lower bounds in the fits). It is split when two round spots
-    beat one spot of any elongation and flatness by :data:`_SPLIT_EVIDENCE` (twice the
-    log-likelihood ratio at the window's noise level) and the fit is a blend: the two
-    :data:`_SPLIT_MIN_SIGMAS`–:data:`_SPLIT_MAX_SIGMAS` σ apart around the maximum, the
-    dimmer at least ``relative_peak`` of the brighter."""
+    Screen (every dot, from the 3x3 curvature its maximum already has): a blend of two
+    round spots of filtered variance v, d apart with shares w and 1 − w of the light at its
+    maximum, is as wide as one spot across the line between them and flatter along it: its
+    long-axis variance is v / (1 − w(1 − w)·d²/v) to second order. Dots whose own light
+    (neighbours taken out, :func:`_own_curvature`) is at least as elongated as the least
+    separable blend the detector would split — :data:`_SPLIT_MIN_SIGMAS` apart, the dimmer
+    ``relative_peak`` of the brighter — are tested (on the random rigs' floors ~1 % of dots).
+
+    Test (:func:`~omnid.core.spotfit.blend_test`): one stretched spot against two round
+    spots of the image's size, by the likelihood ratio at the detector's noise (or the
+    window's residual, where larger) less the information criterion's price of the two-spot
+    family's extra parameters. Split where two spots win, their best separation lies inside
+    the family and at least :data:`_SPLIT_MIN_SIGMAS` σ (closer two spots are one maximum of
+    any smoothing: no capture resolves them the same way twice), and both are dots by the
+    detector's own rule: the dimmer's smoothed peak ≥ ``relative_peak`` of the brighter's. A
+    blob that two spots explain but whose dimmer one is not a dot (a ghost reflection, a
+    halo's grain) keeps one dot, at the brighter spot's centre."""
     n = len(rows)
     none = np.zeros(n, dtype=bool)
     if n == 0:
-        return rows, cols, centre, r, c, clipped, none
+        return rows, cols, centre, r, c, clipped, none, none
     h, w = sm.shape
-    share = relative_peak / (1.0 + relative_peak)
-    d_min = _SPLIT_MIN_SIGMAS * sigma
-    excess = spotfit.light_excess_px2(d, r, c, sigma)
-    ask = np.flatnonzero(excess >= share * (1.0 - share) * d_min * d_min)
+    spread2 = sigma * sigma + 1.0 + 1.0 / 12.0  # a spot's variance after the σ = 1 smoothing
+    # (the image's spot size to 0.01 px: one threshold per size, computed once)
+    s_key = round(sigma, 2)
+    elongation = _blend_elongation(
+        s_key * s_key + 1.0 + 1.0 / 12.0, _SPLIT_MIN_SIGMAS * s_key, relative_peak
+    )
+    # (the raw curvatures first: a neighbour only ever adds elongation to them)
+    _, _, mean_var, max_var, ok = _log_quadratic(sm, rows, cols)
+    min_var = 1.0 / np.maximum(2.0 / mean_var - 1.0 / max_var, 1e-12)
+    ask = np.flatnonzero(ok & (max_var >= elongation * min_var))
     if len(ask) == 0:
-        return rows, cols, centre, r, c, clipped, none
-    evidence, cen, peaks = spotfit.two_spot_test(d, r[ask], c[ask], sigma, saturated)
-    sep = np.hypot(cen[:, 0] - cen[:, 2], cen[:, 1] - cen[:, 3])
-    dim, bright = peaks.min(axis=1), peaks.max(axis=1)
-    mid_r, mid_c = 0.5 * (cen[:, 0] + cen[:, 2]), 0.5 * (cen[:, 1] + cen[:, 3])
-    ir = np.rint(cen[:, [0, 2]]).astype(np.intp)
-    ic = np.rint(cen[:, [1, 3]]).astype(np.intp)
-    ok = (evidence >= _SPLIT_EVIDENCE) & (sep >= d_min) & (sep <= _SPLIT_MAX_SIGMAS * sigma)
-    ok &= (dim > 0) & (dim >= relative_peak * bright)
-    ok &= np.hypot(mid_r - r[ask], mid_c - c[ask]) <= sigma
-    ok &= np.all((ir >= 3) & (ir < h - 3) & (ic >= 3) & (ic < w - 3), axis=1)
-    k = ask[ok]
-    if len(k) == 0:
-        return rows, cols, centre, r, c, clipped, none
-    cen, ir, ic = cen[ok], ir[ok], ic[ok]
+        return rows, cols, centre, r, c, clipped, none, none
+    # the neighbours whose light reaches a candidate's test window (and its 3x3 curvature)
+    scale = math.sqrt(sigma * sigma + 1.0 / 12.0)
+    reach = spotfit.window_half_px(sigma) * math.sqrt(2.0) + 3.0 * scale
+    a, j = _pairs_near(ask, r, c, reach)
+    v_long, v_short, axis = _own_curvature(sm, rows, cols, r, c, centre, spread2, ask, (a, j))
+    keep = v_long >= elongation * v_short
+    if not keep.any():
+        return rows, cols, centre, r, c, clipped, none, none
+    ask, axis = ask[keep], axis[keep]
+    renumber = np.cumsum(keep) - 1
+    kept = keep[a]
+    a, j = renumber[a[kept]], j[kept]
+    valid = None if saturated is None else ~saturated
+    # the other dots, round spots of the image's size (their peak from the smoothed one),
+    # are taken out of each window
+    peak = np.abs(centre).astype(np.float64) * spread2 / (sigma * sigma + 1.0 / 12.0)
+    test = spotfit.blend_test(
+        d, r[ask], c[ask], axis, sigma, noise, valid, (a, r[j], c[j], peak[j])
+    )
+    two = (test.evidence > 0) & test.interior & (test.separation >= _SPLIT_MIN_SIGMAS)
+    cen = test.centres
+    ir = np.rint(cen[:, :, 0]).astype(np.intp)
+    ic = np.rint(cen[:, :, 1]).astype(np.intp)
+    two &= np.all((ir >= 3) & (ir < h - 3) & (ic >= 3) & (ic < w - 3), axis=1)
+    peaks = test.peaks
+    bright = np.argmax(peaks, axis=1)
+    dim_ok = peaks.min(axis=1) >= relative_peak * peaks.max(axis=1)
+    k_two, k_one = ask[two & dim_ok], ask[two & ~dim_ok]
     rows, cols = rows.copy(), cols.copy()
-    r, c, centre = r.copy(), c.copy(), centre.copy()
-    rows[k], cols[k] = ir[:, 0], ic[:, 0]
-    r[k], c[k] = cen[:, 0], cen[:, 1]
-    centre[k] = sm[ir[:, 0], ic[:, 0]]
-    split = np.zeros(n + len(k), dtype=bool)
-    split[k] = True
-    split[n:] = True
+    r, c, centre = r.copy(), c.copy(), centre.astype(np.float64, copy=True)
+    # the smoothed peak of a fitted spot: its peak · var / (var + 1) after the σ = 1 smoothing
+    to_smoothed = (sigma * sigma + 1.0 / 12.0) / spread2
+    fixed = np.zeros(n, dtype=bool)
+    if len(k_one):
+        sel = two & ~dim_ok
+        cb = cen[sel, bright[sel]]
+        r[k_one], c[k_one] = cb[:, 0], cb[:, 1]
+        fixed[k_one] = True
+    if len(k_two) == 0:
+        return rows, cols, centre, r, c, clipped, none, fixed
+    sel = two & dim_ok
+    cen, ir, ic, pk = cen[sel], ir[sel], ic[sel], peaks[sel] * to_smoothed
+    rows[k_two], cols[k_two] = ir[:, 0], ic[:, 0]
+    r[k_two], c[k_two] = cen[:, 0, 0], cen[:, 0, 1]
+    centre[k_two] = pk[:, 0]
+    pair = np.zeros(n + len(k_two), dtype=bool)
+    pair[k_two] = True
+    pair[n:] = True
     return (
         np.concatenate([rows, ir[:, 1]]),
         np.concatenate([cols, ic[:, 1]]),
-        np.concatenate([centre, sm[ir[:, 1], ic[:, 1]]]),
-        np.concatenate([r, cen[:, 2]]),
-        np.concatenate([c, cen[:, 3]]),
-        np.concatenate([clipped, clipped[k]]),
-        split,
+        np.concatenate([centre, pk[:, 1]]),
+        np.concatenate([r, cen[:, 1, 0]]),
+        np.concatenate([c, cen[:, 1, 1]]),
+        np.concatenate([clipped, clipped[k_two]]),
+        pair,
+        np.concatenate([fixed, np.zeros(len(k_two), dtype=bool)]),
     )
 
 

@@ -31,6 +31,7 @@ is, and the fit costs three passes of a few vectorised operations per dot.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -457,192 +458,251 @@ def _neighbour_sums(
 
 
 # --------------------------------------------------------------------------------------------
-# One spot or two: the model test that splits blends of two close beams
+# One spot or two: the model selection that splits blends of two close spots
 # --------------------------------------------------------------------------------------------
 
-#: Levenberg-Marquardt passes of the one- and two-spot fits (:func:`two_spot_test`).
-SPLIT_ITERATIONS = 20
+#: The hypotheses are on grids in units of the spot's sigma s (pixel-sampled: √(σ² + 1/12)):
+#: spot positions along the blob's long axis, from its maximum, every :data:`BLEND_STEP` ...
+BLEND_STEP = 0.2
+BLEND_REACH = 4.0
+#: ... two spots this far apart (the family's ends are not answers: "interior" below) ...
+BLEND_SEPARATIONS = (1.0, 4.0)
+#: ... and one spot centred on the maximum, stretched along the axis by these factors (a spot
+#: the mirror's rim stretches).
+BLEND_STRETCHES = np.arange(1.0, 3.01, 0.1)
+#: Bins of the along-axis coordinate (units of s) the window's pixels are summed into: every
+#: hypothesis's normal equations are then one small matrix product of these sums.
+_BLEND_BIN = 0.1
+_BLEND_BINS = np.arange(-6.5, 6.5 + 1e-9, _BLEND_BIN)  # (a window's corner: ≤ 6 s)
+_BLEND_T = np.arange(-BLEND_REACH, BLEND_REACH + 1e-9, BLEND_STEP)
+_BLEND_T_HALF = np.arange(-BLEND_REACH, BLEND_REACH + 1e-9, BLEND_STEP / 2.0)
 
 
-def _one_spot_model(p: NDArray[np.float64], dr: NDArray, dc: NDArray) -> NDArray[np.float64]:
-    """One spot of any elongation and flatness on a constant: p = (A, r, c, l11, l21, l22,
-    ln power, b0); the inverse covariance is L Lᵀ, L = [[e^l11, 0], [l21, e^l22]], and the
-    profile exp(−(q²/2)^power) (power 1: a Gaussian, above 1 a flatter top)."""
-    u = dr - p[:, 1:2]
-    v = dc - p[:, 2:3]
-    a = np.exp(p[:, 3:4]) * u + p[:, 4:5] * v
-    b = np.exp(p[:, 5:6]) * v
-    q2 = 0.5 * (a * a + b * b)
-    return np.asarray(p[:, 0:1] * np.exp(-(q2 ** np.exp(p[:, 6:7]))) + p[:, 7:8])
+def _kernel(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """exp(−x), C-ordered, with what is below 1e-30 set to 0 (denormals slow the products)."""
+    k = np.exp(-x)
+    k[k < 1e-30] = 0.0
+    return np.ascontiguousarray(k, dtype=np.float64)
 
 
-def _two_spot_model(p: NDArray[np.float64], dr: NDArray, dc: NDArray) -> NDArray[np.float64]:
-    """Two round Gaussians of one size on a constant: p = (A1, r1, c1, A2, r2, c2, ln σ, b0)."""
-    k = -0.5 * np.exp(-2.0 * p[:, 6:7])
-    g1 = np.exp(k * ((dr - p[:, 1:2]) ** 2 + (dc - p[:, 2:3]) ** 2))
-    g2 = np.exp(k * ((dr - p[:, 4:5]) ** 2 + (dc - p[:, 5:6]) ** 2))
-    return np.asarray(p[:, 0:1] * g1 + p[:, 3:4] * g2 + p[:, 7:8])
+# exp(−(a − t)²/2) (a spot at t) and exp(−(a − t)²) (the product of two spots, about their
+# midpoint), over the bins a (rows); the stretched spot's exp(−a²/2k²) and exp(−a²/k²)
+_K_SPOT = _kernel(0.5 * (_BLEND_BINS[:, None] - _BLEND_T[None, :]) ** 2)
+_K_PAIR = _kernel((_BLEND_BINS[:, None] - _BLEND_T_HALF[None, :]) ** 2)
+_K_ONE = _kernel(0.5 * (_BLEND_BINS[:, None] / BLEND_STRETCHES[None, :]) ** 2)
+_K_ONE2 = _kernel((_BLEND_BINS[:, None] / BLEND_STRETCHES[None, :]) ** 2)
+# (side by side: the sums of w·R and w·R·y take the first, those of w·R² the second)
+_K_LIGHT = np.ascontiguousarray(np.hstack([_K_ONE, _K_SPOT]))
+_K_SQUARE = np.ascontiguousarray(np.hstack([_K_ONE2, _K_PAIR]))
+_lo, _hi = (round(x / BLEND_STEP) for x in BLEND_SEPARATIONS)
+# the pairs of positions on _BLEND_T at the allowed separations, t1 > 0 > t2: two spots that
+# are one blob lie on both sides of its maximum
+_ii = np.arange(len(_BLEND_T))
+_sep_i = np.subtract.outer(_ii, _ii)
+_PAIR_I1, _PAIR_I2 = (
+    a.ravel()
+    for a in np.nonzero(
+        (_sep_i >= _lo)
+        & (_sep_i <= _hi)
+        & (_BLEND_T[:, None] > 0.5 * BLEND_STEP)
+        & (_BLEND_T[None, :] < -0.5 * BLEND_STEP)
+    )
+)
+del _ii, _sep_i
+_PAIR_SEP = (_PAIR_I1 - _PAIR_I2) * BLEND_STEP
+_PAIR_OVERLAP = np.exp(-0.25 * _PAIR_SEP**2)
+_PAIR_INTERIOR = (
+    (_lo < _PAIR_I1 - _PAIR_I2)
+    & (_hi > _PAIR_I1 - _PAIR_I2)
+    & (_PAIR_I2 > 0)
+    & (len(_BLEND_T) - 1 > _PAIR_I1)
+)
+del _lo, _hi
 
 
-def _levenberg_marquardt(
-    model,
-    p: NDArray[np.float64],
-    data: NDArray[np.float64],
-    dr: NDArray,
-    dc: NDArray,
-    censored: NDArray[np.bool_] | None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Least squares of ``model`` to ``data`` (n, m), every window at once (forward-difference
-    Jacobian, one damping factor per window); a ``censored`` pixel (clipped: its value only
-    bounds the light from below) has no residual where the model exceeds it. Returns the
-    parameters and the residual sums."""
+@dataclass(frozen=True)
+class BlendTest:
+    """What :func:`blend_test` finds for n blobs: ``evidence`` (n,) for two spots (twice the
+    log-likelihood ratio of the best two-spot over the best one-spot hypothesis, less the
+    information criterion's price of two more parameters), ``centres`` (n, 2, 2) the two
+    spots' (row, col) px, ``peaks`` (n, 2) their peaks (gray), ``separation`` (n,) their
+    distance in spot sigmas, and ``interior`` (n,) whether that optimum lies inside the
+    hypotheses (not at their edge: a distance the family does not hold)."""
 
-    def residual(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        res = model(q, dr, dc) - data
-        if censored is not None:
-            res = np.where(censored & (res > 0), 0.0, res)
-        return np.asarray(res)
-
-    p = p.copy()
-    n, k = p.shape
-    res = residual(p)
-    cost = np.sum(res * res, axis=1)
-    lam = np.full(n, 1e-2)
-    eye = np.eye(k)
-    for _ in range(SPLIT_ITERATIONS):
-        jac = np.empty((n, data.shape[1], k))
-        for j in range(k):
-            step = 1e-4 * np.maximum(np.abs(p[:, j]), 1e-2)
-            q = p.copy()
-            q[:, j] += step
-            jac[:, :, j] = (residual(q) - res) / step[:, None]
-        jac = np.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0)
-        jtj = np.einsum("nmk,nml->nkl", jac, jac)
-        grad = np.einsum("nmk,nm->nk", jac, res)
-        damp = jtj * (1.0 + lam[:, None, None] * eye) + 1e-9 * eye
-        try:
-            delta = np.linalg.solve(damp, -grad[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            delta = (np.linalg.pinv(damp) @ -grad[:, :, None])[:, :, 0]
-        trial = p + delta
-        res_t = residual(trial)
-        cost_t = np.sum(res_t * res_t, axis=1)
-        better = np.isfinite(cost_t) & (cost_t < cost)
-        p[better], res[better], cost[better] = trial[better], res_t[better], cost_t[better]
-        lam = np.where(better, lam * 0.3, lam * 10.0)
-    return p, cost
+    evidence: NDArray[np.float64]
+    centres: NDArray[np.float64]
+    peaks: NDArray[np.float64]
+    separation: NDArray[np.float64]
+    interior: NDArray[np.bool_]
 
 
-def _split_windows(
-    image: NDArray, r: NDArray[np.float64], c: NDArray[np.float64], sigma_px: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray, NDArray]:
-    """The ±3 σ windows around each point: values (n, m), pixel offsets from the nearest
-    pixel (n, m) row and column, and that pixel's row and column (n,)."""
-    n = len(r)
-    h = window_half_px(sigma_px)
-    off = np.arange(-h, h + 1, dtype=np.float64)
-    ir, ic = np.rint(r).astype(np.intp), np.rint(c).astype(np.intp)
-    ones = np.ones_like(off)
-    dr = np.broadcast_to((off[:, None] * ones[None, :]).ravel(), (n, off.size**2))
-    dc = np.broadcast_to((ones[:, None] * off[None, :]).ravel(), (n, off.size**2))
-    rr = clip(ir[:, None] + dr.astype(np.intp), 0, image.shape[0] - 1)
-    cc = clip(ic[:, None] + dc.astype(np.intp), 0, image.shape[1] - 1)
-    return image[rr, cc].astype(np.float64), dr, dc, ir, ic
-
-
-def _excess(
-    data: NDArray[np.float64], dr: NDArray[np.float64], dc: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The windows' light above their median: how much its long axis's variance exceeds the
-    short one's, px² (two spots d apart with shares w and 1 − w: w(1 − w)·d²), and the long
-    axis's angle (rad, from the row axis)."""
-    w = np.maximum(data - np.median(data, axis=1, keepdims=True), 0.0)
-    total = np.maximum(w.sum(axis=1), 1e-9)
-    mr = (w * dr).sum(axis=1) / total
-    mc = (w * dc).sum(axis=1) / total
-    vrr = (w * (dr - mr[:, None]) ** 2).sum(axis=1) / total
-    vcc = (w * (dc - mc[:, None]) ** 2).sum(axis=1) / total
-    vrc = (w * (dr - mr[:, None]) * (dc - mc[:, None])).sum(axis=1) / total
-    theta = 0.5 * np.arctan2(2.0 * vrc, vrr - vcc)
-    return 2.0 * np.sqrt(0.25 * (vrr - vcc) ** 2 + vrc * vrc), theta
-
-
-def light_excess_px2(
-    image: NDArray[np.float32], r: NDArray[np.float64], c: NDArray[np.float64], sigma_px: float
-) -> NDArray[np.float64]:
-    """(n,) the long-axis variance excess of the light around each point (:func:`_excess`),
-    px²: a cheap screen for :func:`two_spot_test`."""
-    if len(r) == 0:
-        return np.zeros(0)
-    data, dr, dc, _, _ = _split_windows(image, r, c, sigma_px)
-    return _excess(data, dr, dc)[0]
-
-
-def two_spot_test(
+def blend_test(
     image: NDArray[np.float32],
     r: NDArray[np.float64],
     c: NDArray[np.float64],
+    axis: NDArray[np.float64],
     sigma_px: float,
-    saturated: NDArray[np.bool_] | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Is each dot (sub-pixel centre ``r``, ``c`` in a background-free ``image``) one spot or
-    the blend of two? Both models are fitted by least squares to the window of ±3 σ around it:
+    noise_gray: float,
+    valid: NDArray[np.bool_] | None = None,
+    neighbours: tuple[NDArray[np.intp], NDArray, NDArray, NDArray] | None = None,
+) -> BlendTest:
+    """Is each blob (its maximum at sub-pixel ``r``, ``c`` of a background-free ``image``, its
+    light elongated along the unit vector ``axis`` (n, 2)) one spot or two?
 
-    - one spot of free elongation, orientation and flatness (:func:`_one_spot_model`): a spot
-      the mirror's rim stretches, a flat (multimode) top;
-    - two round Gaussians of one free size (:func:`_two_spot_model`): two beams a doubled
-      beam's offset apart.
+    Two families of the image's spot (round, Gaussian of ``sigma_px``; s² = σ² + 1/12 pixel
+    sampled), each fitted by weighted least squares on the ±3 σ window, pixels ``valid``
+    False (clipped) left out; amplitudes and a constant are linear, solved exactly for every
+    hypothesis:
 
-    Both have 8 parameters, so neither wins by its number of them. A blend and a stretched
-    spot agree to second order (the same intensity covariance); they differ at fourth order —
-    the blend is flatter along its long axis only, a flat top in every direction — which is
-    what the residuals compare. Returns (the evidence for two, (n, 4) the two centres r1, c1,
-    r2, c2, px, and (n, 2) their peaks). The evidence is (SSR_one − SSR_two) / s² with s² the
-    per-pixel residual variance of the better model, i.e. twice the log-likelihood ratio at
-    the window's own noise level (read noise, shot noise and speckle alike).
+    - one spot centred on the maximum, stretched along ``axis`` by k (:data:`BLEND_STRETCHES`):
+      a spot the mirror's rim stretches (1 nonlinear parameter);
+    - two round spots on the line through the maximum along ``axis``, on both sides of it
+      (two spots that are one blob), at positions t₁ > 0 > t₂ (:data:`BLEND_STEP` apart on
+      ±:data:`BLEND_REACH` s, separations :data:`BLEND_SEPARATIONS`): two beams of a doubled
+      beam, or a dot and its ghost (2).
+
+    The other dots near each blob (``neighbours``: the blob's index, and the dot's row, col
+    and peak), round spots of the image's size, are taken out of its window first: a
+    neighbour's light is no second spot.
+
+    Both models are a round Gaussian across the axis times a profile along it, so every sum
+    of their normal equations is a sum over the window's pixels of a function of their
+    along-axis coordinate: the pixels are binned along it once (:data:`_BLEND_BIN` s) and each
+    hypothesis's sums are a product with fixed kernels — the two spots' cross term is a spot
+    of half the variance at their midpoint. The evidence is (SSR₁ − SSR₂)/s_n² − 2 ln m: twice
+    the log-likelihood ratio at the noise s_n (the sensor's ``noise_gray``, or the window's
+    residual where that is larger: shot noise, speckle, halos), less the Bayesian information
+    criterion's price of the two more parameters over the window's m pixels. The two spots'
+    positions are refined by a parabola through the best hypothesis and its neighbours.
     """
     n = len(r)
-    data, dr, dc, ir, ic = _split_windows(image, r, c, sigma_px)
-    censored = None
-    if saturated is not None:
-        censored = _split_windows(saturated, r, c, sigma_px)[0] > 0.5
-        if not censored.any():
-            censored = None
-    r0, c0 = r - ir, c - ic
-    excess, theta = _excess(data, dr, dc)
-    half = clip(np.sqrt(np.maximum(excess, 0.0)), 0.3 * sigma_px, 1.5 * sigma_px)
-    er, ec = np.cos(theta), np.sin(theta)
-    top = data.max(axis=1)
-    s = float(sigma_px)
-    p1 = np.column_stack(
-        [
-            top,
-            r0,
-            c0,
-            np.full(n, -math.log(s)),
-            np.zeros(n),
-            np.full(n, -math.log(s)),
-            np.zeros(n),
-            np.zeros(n),
-        ]
+    half = window_half_px(sigma_px)
+    off = np.arange(-half, half + 1)
+    ir, ic = np.rint(r).astype(np.intp), np.rint(c).astype(np.intp)
+    pr = clip(ir[:, None] + np.repeat(off, len(off))[None, :], 0, image.shape[0] - 1)
+    pc = clip(ic[:, None] + np.tile(off, len(off))[None, :], 0, image.shape[1] - 1)
+    y = image[pr, pc].astype(np.float64)
+    wt = np.ones_like(y) if valid is None else valid[pr, pc].astype(np.float64)
+    m = y.shape[1]
+    scale = math.sqrt(sigma_px * sigma_px + 1.0 / 12.0)
+    if neighbours is not None and len(neighbours[0]):
+        ki, o_r, o_c, o_peak = neighbours
+        qr = pr[ki] - o_r[:, None]
+        qc = pc[ki] - o_c[:, None]
+        light = o_peak[:, None] * np.exp((qr * qr + qc * qc) * (-0.5 / (scale * scale)))
+        y -= np.asarray(
+            np.bincount(
+                (ki[:, None] * m + np.arange(m)[None, :]).ravel(),
+                weights=light.ravel(),
+                minlength=n * m,
+            ),
+            dtype=np.float64,
+        ).reshape(n, m)
+    er, ec = axis[:, 0:1], axis[:, 1:2]
+    dr, dc = pr - r[:, None], pc - c[:, None]
+    along = (dr * er + dc * ec) / scale
+    across = (dc * er - dr * ec) / scale
+    rnd = np.exp(-0.5 * across * across)
+    # the window binned along the axis: sums of w·R², w·R and w·R·y per bin
+    nb = len(_BLEND_BINS)
+    k = clip(np.rint((along - _BLEND_BINS[0]) / _BLEND_BIN).astype(np.intp), 0, nb - 1)
+    flat = (k + nb * np.arange(n)[:, None]).ravel()
+    wr = wt * rnd
+
+    # one count of the three weights: w·R², w·R and w·R·y per bin (n, nb) each
+    w_r = wr.ravel()
+    hist = np.asarray(
+        np.bincount(
+            np.concatenate([flat, flat + n * nb, flat + 2 * n * nb]),
+            weights=np.concatenate([w_r * rnd.ravel(), w_r, w_r * y.ravel()]),
+            minlength=3 * n * nb,
+        ),
+        dtype=np.float64,
+    ).reshape(3, n, nb)
+    s0 = wt.sum(axis=1)
+    sy = (wt * y).sum(axis=1)
+    syy = (wt * y * y).sum(axis=1)
+    base = syy - sy * sy / np.maximum(s0, 1e-12)  # the constant alone
+    ks = len(BLEND_STRETCHES)
+    light = hist[1:].reshape(2 * n, nb) @ _K_LIGHT  # Σ w g and Σ w g y, both families
+    square = hist[0] @ _K_SQUARE  # Σ w g², and Σ w R² exp(−(a − t)²) on the half-step grid
+    # one stretched spot: a' = Σ w g² − (Σ w g)²/S0, b' = Σ w g y − Σ w g · Sy / S0
+    g1 = light[:n, :ks]
+    a1 = square[:, :ks] - g1 * g1 / s0[:, None]
+    b1 = light[n:, :ks] - g1 * (sy / s0)[:, None]
+    ssr1_all = base[:, None] - np.where(
+        (b1 > 0) & (a1 > 1e-12), b1 * b1 / np.maximum(a1, 1e-12), 0.0
     )
-    p2 = np.column_stack(
-        [
-            0.6 * top,
-            r0 + half * er,
-            c0 + half * ec,
-            0.6 * top,
-            r0 - half * er,
-            c0 - half * ec,
-            np.full(n, math.log(s)),
-            np.zeros(n),
-        ]
+    ssr1 = ssr1_all.min(axis=1)
+    # two round spots at t1 > 0 > t2 on the line
+    gs, gy, gg = light[:n, ks:], light[n:, ks:], square[:, ks:]
+    mean_s, mean_y = (1.0 / s0)[:, None], (sy / s0)[:, None]
+    each = np.arange(n)[:, None]
+
+    def two_spots(
+        i1: NDArray[np.intp], i2: NDArray[np.intp], overlap: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """SSR and the two amplitudes of the hypotheses (positions i1 > i2 on _BLEND_T;
+        ``overlap`` exp(−(t1 − t2)²/4), the two spots' product's factor)."""
+
+        def take(a: NDArray[np.float64], i: NDArray[np.intp]) -> NDArray[np.float64]:
+            return a[:, i] if i.ndim == 1 else a[each, i]
+
+        g_1, g_2 = take(gs, i1), take(gs, i2)
+        a11 = take(gg, 2 * i1) - g_1 * g_1 * mean_s
+        a22 = take(gg, 2 * i2) - g_2 * g_2 * mean_s
+        a12 = overlap * take(gg, i1 + i2) - g_1 * g_2 * mean_s
+        b_1 = take(gy, i1) - g_1 * mean_y
+        b_2 = take(gy, i2) - g_2 * mean_y
+        det = a11 * a22 - a12 * a12
+        ok = det > 1e-9 * np.maximum(a11 * a22, 1e-300)
+        det = np.where(ok, det, 1.0)
+        amp1 = (a22 * b_1 - a12 * b_2) / det
+        amp2 = (a11 * b_2 - a12 * b_1) / det
+        ssr = base[:, None] - (amp1 * b_1 + amp2 * b_2)
+        return np.where(ok & (amp1 > 0) & (amp2 > 0), ssr, np.inf), amp1, amp2
+
+    ssr2_all, amp1, amp2 = two_spots(_PAIR_I1, _PAIR_I2, _PAIR_OVERLAP)
+    best = np.argmin(ssr2_all, axis=1)
+    rows = np.arange(n)
+    ssr2 = ssr2_all[rows, best]
+    s2 = np.maximum(noise_gray * noise_gray, np.minimum(ssr1, ssr2) / max(m - 5, 1))
+    with np.errstate(invalid="ignore"):
+        evidence = (ssr1 - ssr2) / np.maximum(s2, 1e-12) - 2.0 * math.log(m)
+    evidence = np.where(np.isfinite(evidence), evidence, -np.inf)
+    b1i, b2i = _PAIR_I1[best], _PAIR_I2[best]
+    interior = _PAIR_INTERIOR[best] & np.isfinite(ssr2)
+    t1, t2 = _BLEND_T[b1i], _BLEND_T[b2i]
+    if np.any(interior & (evidence > 0)):
+        # parabolas through the best and its neighbours, moving one spot at a time (a
+        # neighbour off the grid or with the spots' order swapped is no hypothesis)
+        last = len(_BLEND_T) - 1
+        n1 = np.column_stack([np.maximum(b1i - 1, 0), np.minimum(b1i + 1, last), b2i, b2i])
+        n2 = np.column_stack([b1i, b1i, np.maximum(b2i - 1, 0), np.minimum(b2i + 1, last)])
+        near, _, _ = two_spots(n1, n2, np.exp(-0.25 * ((n1 - n2) * BLEND_STEP) ** 2))
+        near = np.where(n1 > n2, near, np.inf)
+        t1 = t1 + _vertex(near[:, 0], ssr2, near[:, 1]) * BLEND_STEP
+        t2 = t2 + _vertex(near[:, 2], ssr2, near[:, 3]) * BLEND_STEP
+    ax = axis[:, None, :]
+    centres = np.column_stack([r, c])[:, None, :] + (
+        scale * np.stack([t1, t2], axis=1)[:, :, None] * ax
     )
-    with np.errstate(over="ignore", invalid="ignore"):  # (a trial step may overflow: refused)
-        _, ssr1 = _levenberg_marquardt(_one_spot_model, p1, data, dr, dc, censored)
-        q2, ssr2 = _levenberg_marquardt(_two_spot_model, p2, data, dr, dc, censored)
-    dof = max(data.shape[1] - p1.shape[1], 1)
-    s2 = np.maximum(np.minimum(ssr1, ssr2) / dof, 1e-9)
-    evidence = (ssr1 - ssr2) / s2
-    centres = np.column_stack([q2[:, 1] + ir, q2[:, 2] + ic, q2[:, 4] + ir, q2[:, 5] + ic])
-    return evidence, centres, q2[:, [0, 3]]
+    return BlendTest(
+        evidence,
+        centres,
+        np.column_stack([amp1[rows, best], amp2[rows, best]]),
+        (t1 - t2) * scale / sigma_px,
+        interior,
+    )
+
+
+def _vertex(
+    lo: NDArray[np.float64], mid: NDArray[np.float64], hi: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The offset (steps, within ±½) of the vertex of the parabola through (−1, lo), (0, mid),
+    (1, hi); 0 where it is not a minimum (or a neighbour is no hypothesis)."""
+    with np.errstate(invalid="ignore"):
+        curv = lo - 2.0 * mid + hi
+        ok = np.isfinite(curv) & (curv > 0)
+        step = 0.5 * (lo - hi) / np.where(ok, curv, 1.0)
+    return np.where(ok, clip(step, -0.5, 0.5), 0.0)

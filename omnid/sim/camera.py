@@ -26,6 +26,7 @@ model of ``render.py``).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -37,7 +38,14 @@ from numpy.typing import NDArray
 
 from omnid.config import require
 from omnid.core.geometry import MirrorCamera, StereoRig
-from omnid.sim.render import OUTSIDE_DISK_LEVEL, RenderOptions, hits_flux, laser_image
+from omnid.sim.render import (
+    OUTSIDE_DISK_LEVEL,
+    RenderOptions,
+    disk_mask,
+    hits_flux,
+    laser_image,
+    sensor_image,
+)
 from omnid.sim.world import LaserHits, RigMount, World
 
 Pose = tuple[float, float, float]
@@ -105,7 +113,11 @@ class SimFrame:
 
 class SceneTexture:
     """Gray levels fixed to world points (x, y, h) mm: a 2-D texture image over the world's
-    floor extent, sampled at (x + 0.7·h, y − 0.7·h) so that box sides are textured too."""
+    floor extent, sampled at (x + 0.7·h, y − 0.7·h) so that box sides are textured too.
+
+    The image is a function of the model's texture settings, the extent and the seed: it is
+    built once per process for each such set (read-only, shared by every simulator that asks
+    for the same one; a texture takes ~0.5 s and 20 MB)."""
 
     def __init__(
         self,
@@ -115,38 +127,18 @@ class SceneTexture:
         texel_mm: float = 5.0,
         floor_px_mm: float = 10.0,
     ) -> None:
-        x0, x1, y0, y1 = extent_mm
         self.texel_mm = texel_mm
-        self.x0, self.y0 = x0, y0
-        cols = math.ceil((x1 - x0) / texel_mm) + 2
-        rows = math.ceil((y1 - y0) / texel_mm) + 2
-        rng = np.random.default_rng(seed)
-
-        def field(cell_mm: float) -> NDArray[np.float32]:
-            n = max(2, int(cell_mm / texel_mm))
-            coarse = rng.standard_normal((rows // n + 3, cols // n + 3)).astype(np.float32)
-            big = cv2.resize(
-                coarse, ((cols // n + 3) * n, (rows // n + 3) * n), interpolation=cv2.INTER_CUBIC
-            )
-            return np.asarray(big[:rows, :cols], dtype=np.float32)
-
-        img = model.texture_level + model.texture_contrast * field(245.0)
-        img = img + model.texture_detail * field(30.0)
-        if model.texture == "tiles":
-            xs = x0 + texel_mm * np.arange(cols, dtype=np.float64)[None, :]
-            ys = y0 + texel_mm * np.arange(rows, dtype=np.float64)[:, None]
-            half = model.tile_mm / 2
-
-            def cover(d: NDArray[np.float64]) -> NDArray[np.float64]:  # area-sampled grout
-                return np.clip((model.grout_mm / 2 - d) / texel_mm + 0.5, 0.0, 1.0)
-
-            gx = cover(np.abs(((xs + half) % model.tile_mm) - half))
-            gy = cover(np.abs(((ys + half) % model.tile_mm) - half))
-            img = img - model.grout_gray * np.maximum(gx, gy).astype(np.float32)
-        # pre-filter to a floor pixel's footprint (the mirror images the floor at a uniform
-        # ~10 mm per px): sampling then does not alias
-        sigma = 0.4 * floor_px_mm / texel_mm
-        self.image = np.asarray(cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma))
+        self.x0, self.y0 = extent_mm[0], extent_mm[2]
+        look = (
+            model.texture,
+            model.texture_level,
+            model.texture_contrast,
+            model.texture_detail,
+            model.tile_mm,
+            model.grout_mm,
+            model.grout_gray,
+        )
+        self.image = _texture_image(look, tuple(extent_mm), int(seed), texel_mm, floor_px_mm)
 
     def texel_coordinates(
         self, x_mm: NDArray[np.float64], y_mm: NDArray[np.float64], h_mm: NDArray[np.float64]
@@ -162,8 +154,56 @@ class SceneTexture:
         return np.asarray(out, dtype=np.float32)
 
 
+@functools.lru_cache(maxsize=3)
+def _texture_image(
+    look: tuple[str, float, float, float, float, float, float],
+    extent_mm: tuple[float, ...],
+    seed: int,
+    texel_mm: float,
+    floor_px_mm: float,
+) -> NDArray[np.float32]:
+    """The texture image of :class:`SceneTexture` (``look``: the model's texture, level,
+    contrast, detail, tile, grout width and grout gray)."""
+    texture, level, contrast, detail, tile_mm, grout_mm, grout_gray = look
+    x0, x1, y0, y1 = extent_mm
+    cols = math.ceil((x1 - x0) / texel_mm) + 2
+    rows = math.ceil((y1 - y0) / texel_mm) + 2
+    rng = np.random.default_rng(seed)
+
+    def field(cell_mm: float) -> NDArray[np.float32]:
+        n = max(2, int(cell_mm / texel_mm))
+        coarse = rng.standard_normal((rows // n + 3, cols // n + 3)).astype(np.float32)
+        big = cv2.resize(
+            coarse, ((cols // n + 3) * n, (rows // n + 3) * n), interpolation=cv2.INTER_CUBIC
+        )
+        return np.asarray(big[:rows, :cols], dtype=np.float32)
+
+    img = level + contrast * field(245.0)
+    img = img + detail * field(30.0)
+    if texture == "tiles":
+        xs = x0 + texel_mm * np.arange(cols, dtype=np.float64)[None, :]
+        ys = y0 + texel_mm * np.arange(rows, dtype=np.float64)[:, None]
+        half = tile_mm / 2
+
+        def cover(d: NDArray[np.float64]) -> NDArray[np.float64]:  # area-sampled grout
+            return np.clip((grout_mm / 2 - d) / texel_mm + 0.5, 0.0, 1.0)
+
+        gx = cover(np.abs(((xs + half) % tile_mm) - half))
+        gy = cover(np.abs(((ys + half) % tile_mm) - half))
+        img = img - grout_gray * np.maximum(gx, gy).astype(np.float32)
+    # pre-filter to a floor pixel's footprint (the mirror images the floor at a uniform
+    # ~10 mm per px): sampling then does not alias
+    sigma = 0.4 * floor_px_mm / texel_mm
+    image = np.asarray(cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma), dtype=np.float32)
+    image.flags.writeable = False
+    return image
+
+
 class _CameraRays:
-    """The viewing rays of one camera on a coarse grid (slopes X/Z, (Y − Y_i)/Z)."""
+    """The viewing rays of one camera on a coarse grid (slopes X/Z, (Y − Y_i)/Z), and what of
+    the image does not change between frames: the mirror disk, its bounding box, and which grid
+    nodes the disk's pixels interpolate from (only those rays are cast: the rest of the image
+    is the dark housing whatever the pose)."""
 
     def __init__(self, cam: MirrorCamera, grid_px: int) -> None:
         rows, cols = cam.image_shape
@@ -171,30 +211,71 @@ class _CameraRays:
         self.cam = cam
         self.shape = (rows, cols)
         self.grid_shape = (rows // grid_px, cols // grid_px)
+        self.disk = disk_mask(cam)
+        in_rows = np.flatnonzero(self.disk.any(axis=1))
+        in_cols = np.flatnonzero(self.disk.any(axis=0))
+        if len(in_rows) == 0:  # a disk outside the image: one pixel stands for it
+            in_rows = in_cols = np.zeros(1, dtype=np.int64)
+        #: (rows, cols) slices of the disk's bounding box: outside it every pixel is housing
+        self.box = (
+            slice(int(in_rows[0]), int(in_rows[-1]) + 1),
+            slice(int(in_cols[0]), int(in_cols[-1]) + 1),
+        )
+        self.disk_in_box = np.ascontiguousarray(self.disk[self.box])
+        self.nodes = np.flatnonzero(_nodes_used(self.disk, grid_px, self.grid_shape).ravel())
         # node j stands for pixel j·step + (step − 1)/2: where cv2.resize puts it
         half = (grid_px - 1) / 2
         gr = np.arange(self.grid_shape[0], dtype=np.float64) * grid_px + half
         gc = np.arange(self.grid_shape[1], dtype=np.float64) * grid_px + half
         rr, cc = np.meshgrid(gr, gc, indexing="ij")
-        sl = cam.ray_slopes(np.column_stack([rr.ravel(), cc.ravel()]))
+        grid_rc = np.column_stack([rr.ravel(), cc.ravel()])[self.nodes]
+        sl = cam.ray_slopes(grid_rc)
         self.sx, self.sy = sl[:, 0], sl[:, 1]
-        dr = np.arange(rows, dtype=np.float32)[:, None] - np.float32(cam.center_row_px)
-        dc = np.arange(cols, dtype=np.float32)[None, :] - np.float32(cam.center_col_px)
-        self.disk = (dr * dr + dc * dc) <= np.float32(cam.disk_radius_px**2)
+        self._minus_sy = -self.sy
+        self._by_sx = np.argsort(self.sx, kind="stable")  # the rays in order of X/Z
+        self._sx_sorted = self.sx[self._by_sx]
+
+    def _rays_near(
+        self, corners: NDArray[np.float64], depths_mm: tuple[float, float]
+    ) -> NDArray[np.intp]:
+        """Indices of the rays that may pass through a region: ``corners`` (4, 2) of its
+        rectangle relative to the mirror in rig axes (X, Y), mm, between two depths (> 0) —
+        those whose slopes lie in the bounding box of the corners' slopes at both depths,
+        widened a little (a superset: the slab test decides)."""
+        slopes = np.concatenate([corners / depths_mm[0], corners / depths_mm[1]])
+        lo, hi = slopes.min(axis=0), slopes.max(axis=0)
+        pad = 1e-9 + 1e-6 * (hi - lo)
+        lo, hi = lo - pad, hi + pad
+        i0, i1 = np.searchsorted(self._sx_sorted, (lo[0], hi[0]))
+        near = self._by_sx[i0 : i1 + 1]
+        sy = self.sy[near]
+        return near[(sy >= lo[1]) & (sy <= hi[1])]
+
+    def on_grid(self, values: NDArray[np.float32]) -> NDArray[np.float32]:
+        """The grid (rows, cols) with ``values`` at the cast nodes, 0 at the others."""
+        g = np.zeros(self.grid_shape[0] * self.grid_shape[1], dtype=np.float32)
+        g[self.nodes] = values
+        return g.reshape(self.grid_shape)
 
     def world_hits(
         self, pose: Pose, mount: RigMount, boxes: NDArray[np.float64], pits: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """World (x, y, h) of the first surface each grid ray meets (floor, box, pit)."""
+        """World (x, y, h) of the first surface each cast grid ray (``nodes``) meets (floor,
+        box, pit)."""
         H = mount.height_mm
         px, py, th = pose
         c, s = math.cos(th), math.sin(th)
         # point at depth Z on the ray: world xy = a + Z·b (rig → robot: x = X + offset, y = −Y)
         ox, oy = mount.x_offset_mm, -self.cam.y_mm
         ax, ay = px + c * ox - s * oy, py + s * ox + c * oy
-        bx = c * self.sx - s * (-self.sy)
-        by = s * self.sx + c * (-self.sy)
+        bx = c * self.sx - s * self._minus_sy
+        by = s * self.sx + c * self._minus_sy
         z = np.full(len(bx), H)
+        if len(bx) == 0:
+            return ax + z * bx, ay + z * by, H - z
+        # a slope of exactly 0 (a ray along a world axis) is rare: without one, the slab tests
+        # skip their b = 0 branch
+        nonzero = bool(np.all(bx != 0) and np.all(by != 0))
         # the rays' xy extent between depth Z0 and H: a box outside it is met by no ray
         bx_lo, bx_hi, by_lo, by_hi = bx.min(), bx.max(), by.min(), by.max()
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -207,20 +288,66 @@ class _CameraRays:
                     or ay + min(z0 * by_lo, H * by_lo) > y1
                 ):
                     continue
-                zin, zout = _slab(ax, bx, x0, x1, np.full_like(bx, H - hgt), np.full_like(bx, H))
-                zin2, zout2 = _slab(ay, by, y0, y1, zin, zout)
-                hit = (zin2 <= zout2) & (zin2 < z) & (zin2 >= 0)
-                z = np.where(hit, zin2, z)
-            floor = z >= H
-            for x0, x1, y0, y1, depth in pits:
+                if z0 > 0:  # only the rays whose slopes can reach the box are tested
+                    dx = np.array([x0, x0, x1, x1]) - ax
+                    dy = np.array([y0, y1, y0, y1]) - ay
+                    rig_xy = np.column_stack([c * dx + s * dy, s * dx - c * dy])
+                    ray = self._rays_near(rig_xy, (z0, H))
+                    if len(ray) == 0:
+                        continue
+                    bxr, byr, zr = bx[ray], by[ray], z[ray]
+                else:
+                    ray, bxr, byr, zr = None, bx, by, z
+                zin, zout = _slab(ax, bxr, x0, x1, H - hgt, H, nonzero)
+                zin2, zout2 = _slab(ay, byr, y0, y1, zin, zout, nonzero)
+                hit = (zin2 <= zout2) & (zin2 < zr) & (zin2 >= 0)
+                if ray is None:
+                    np.copyto(z, zin2, where=hit)
+                else:
+                    z[ray[hit]] = zin2[hit]
+            if len(pits):
+                floor = z >= H
                 fx, fy = ax + H * bx, ay + H * by
+            for x0, x1, y0, y1, depth in pits:
                 inside = floor & (fx >= x0) & (fx <= x1) & (fy >= y0) & (fy <= y1)
                 if not np.any(inside):
                     continue
-                _, zout = _slab(ax, bx, x0, x1, np.full_like(bx, H), np.full_like(bx, H + depth))
-                _, zout2 = _slab(ay, by, y0, y1, np.full_like(bx, H), zout)
+                _, zout = _slab(ax, bx, x0, x1, H, H + depth, nonzero)
+                _, zout2 = _slab(ay, by, y0, y1, H, zout, nonzero)
                 z = np.where(inside, np.clip(zout2, H, H + depth), z)
         return ax + z * bx, ay + z * by, H - z
+
+
+@functools.lru_cache(maxsize=8)
+def _camera_rays(cam: MirrorCamera, grid_px: int) -> _CameraRays:
+    """The rays of ``cam`` on the grid (read-only after construction: built once per camera)."""
+    return _CameraRays(cam, grid_px)
+
+
+def _nodes_used(disk: NDArray[np.bool_], grid_px: int, grid_shape: tuple[int, int]) -> NDArray:
+    """(grid rows, grid cols) bool: the grid nodes whose values a pixel of ``disk`` takes when
+    the grid is resized to the image (cv2.resize, bilinear: each pixel blends the 2 x 2 nodes
+    around it, the one at or before it and the next), widened by two nodes on every side: the
+    image's pixels in the disk are then exactly those of a fully cast grid."""
+
+    def around(n_px: int, n_grid: int) -> NDArray[np.int64]:
+        src = np.floor((np.arange(n_px) + 0.5) / grid_px - 0.5).astype(np.int64)
+        return np.clip(src, 0, n_grid - 1)
+
+    used = np.zeros(grid_shape, dtype=bool)
+    rows, cols = np.nonzero(disk)
+    r0 = around(disk.shape[0], grid_shape[0])[rows]
+    c0 = around(disk.shape[1], grid_shape[1])[cols]
+    used[r0, c0] = True
+    widened = used.copy()
+    for dr in range(-2, 3):
+        for dc in range(-2, 3):
+            sr = slice(max(dr, 0), grid_shape[0] + min(dr, 0))
+            tr = slice(max(-dr, 0), grid_shape[0] + min(-dr, 0))
+            sc = slice(max(dc, 0), grid_shape[1] + min(dc, 0))
+            tc = slice(max(-dc, 0), grid_shape[1] + min(-dc, 0))
+            widened[tr, tc] |= used[sr, sc]
+    return widened
 
 
 def _slab(
@@ -228,12 +355,16 @@ def _slab(
     b: NDArray[np.float64],
     lo: float,
     hi: float,
-    zin: NDArray[np.float64],
-    zout: NDArray[np.float64],
+    zin: NDArray[np.float64] | float,
+    zout: NDArray[np.float64] | float,
+    nonzero: bool = False,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Narrow the depth interval [zin, zout] of rays a + Z·b to where lo ≤ a + Z·b ≤ hi."""
+    """Narrow the depth interval [zin, zout] of rays a + Z·b to where lo ≤ a + Z·b ≤ hi
+    (``nonzero``: no slope in ``b`` is 0)."""
     t0 = (lo - a) / b
     t1 = (hi - a) / b
+    if nonzero:
+        return np.maximum(zin, np.minimum(t0, t1)), np.minimum(zout, np.maximum(t0, t1))
     near = np.where(b != 0, np.minimum(t0, t1), np.where((a >= lo) & (a <= hi), -np.inf, np.inf))
     far = np.where(b != 0, np.maximum(t0, t1), np.where((a >= lo) & (a <= hi), np.inf, -np.inf))
     return np.maximum(zin, near), np.minimum(zout, far)
@@ -260,7 +391,7 @@ class SimCamera:
         self.phase_s = float(self._rng.uniform(0, model.period_s)) if phase is None else phase
         self.options = render_options or RenderOptions()
         self.texture = SceneTexture(model, extent_mm, seed + 15485863)
-        self._rays = (_CameraRays(rig.cam1, model.grid_px), _CameraRays(rig.cam2, model.grid_px))
+        self._rays = (_camera_rays(rig.cam1, model.grid_px), _camera_rays(rig.cam2, model.grid_px))
         self._geometry: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
         self.world_version = 0
         self.set_world(world)
@@ -334,20 +465,21 @@ class SimCamera:
         rays = self._rays[cam_index]
         boxes, pits = self._geometry[world]
         x, y, h = rays.world_hits(pose, self.mount, boxes, pits)
-        g = rays.grid_shape
         rows, cols = rays.shape
         u, v = self.texture.texel_coordinates(x, y, h)
 
         def full(a: NDArray[np.float32]) -> NDArray[np.float32]:  # grid → every pixel, bilinear
-            out = cv2.resize(a.reshape(g), (cols, rows), interpolation=cv2.INTER_LINEAR)
+            out = cv2.resize(rays.on_grid(a), (cols, rows), interpolation=cv2.INTER_LINEAR)
             return np.asarray(out, dtype=np.float32)
 
-        gray = self.texture.sample_texels(full(u), full(v))
+        box = rays.box  # only the disk's bounding box is sampled: the rest is housing
+        gray = self.texture.sample_texels(full(u)[box], full(v)[box])
         if textured == "floor":
-            on_box = (h > 1.0).astype(np.float32).reshape(g)  # above the floor: a box
-            box = cv2.resize(on_box, (cols, rows), interpolation=cv2.INTER_LINEAR) > 0.5
-            gray = np.where(box, np.float32(self.model.texture_level), gray)
-        return np.where(rays.disk, gray, np.float32(OUTSIDE_DISK_LEVEL)).astype(np.float32)
+            on_box = (h > 1.0).astype(np.float32)  # above the floor: a box
+            gray = np.where(full(on_box)[box] > 0.5, np.float32(self.model.texture_level), gray)
+        out = np.full((rows, cols), OUTSIDE_DISK_LEVEL, dtype=np.float32)
+        np.copyto(out[box], gray, where=rays.disk_in_box)
+        return out
 
     def render(self, frame: SimFrame, hits: LaserHits) -> tuple[Image, Image]:
         """The two images of ``frame``: the world scene at its pose, the laser dots each mirror
@@ -365,14 +497,5 @@ class SimCamera:
             if frame.lit > 0 and np.any(vis):
                 xyz = hits.xyz[vis]
                 signal += laser_image(cam, cam.project(xyz), opts.spots, rng, flux_all[vis, i])
-            noise = np.empty(signal.shape, dtype=np.float32)
-            cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
-            cv2.randn(noise, 0.0, 1.0)  # type: ignore[call-overload, unused-ignore]
-            if opts.shot_noise_gain > 0:
-                var = opts.noise_sigma**2 + opts.shot_noise_gain * np.maximum(signal, 0.0)
-                noise *= np.sqrt(var).astype(np.float32)
-            else:
-                noise *= np.float32(opts.noise_sigma)
-            signal += noise
-            out.append(np.asarray(cv2.convertScaleAbs(np.maximum(signal, 0.0)), dtype=np.uint8))
+            out.append(sensor_image(signal, opts, rng))
         return out[0], out[1]

@@ -9,6 +9,7 @@ the demos install with). The simulator never hands the true rig or laser to perc
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -71,13 +72,31 @@ def calibrate_installed(
     seed: int = 0,
     options: RenderOptions | None = None,
 ) -> Any:
-    """Calibration from the simulated installer's captures (floor + extras), nothing else."""
+    """Calibration from the simulated installer's captures (floor + extras), nothing else.
+
+    Everything in it is seeded, so the same arguments give the same calibration: it is computed
+    once per process for each set of them (a :class:`~omnid.core.calibration.Calibration` is
+    frozen; every simulator of the same installation shares it, as the rides of one installed
+    chair do). Unhashable arguments (a laser given as its rays) are calibrated every time."""
+    try:
+        hash((rig, laser, mount, seed, options))
+    except TypeError:
+        return _calibrate_installed(rig, laser, mount, seed, options)
+    return _calibrate_installed_once(rig, laser, mount, seed, options)
+
+
+def _calibrate_installed(
+    rig: StereoRig, laser: Any, mount: RigMount | None, seed: int, options: RenderOptions | None
+) -> Any:
     from omnid.core.calibration import calibrate_from_capture
 
     floor, extras = installation_captures(rig, laser, mount, seed, options)
     return calibrate_from_capture(
         floor, rig.floor_depth_mm, rig.baseline_mm, extras=list(extras.values())
     )
+
+
+_calibrate_installed_once = functools.lru_cache(maxsize=16)(_calibrate_installed)
 
 
 def write_capture(capture: StereoCapture, directory: str | Path, prefix: str = "") -> Path:

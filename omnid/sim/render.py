@@ -35,6 +35,7 @@ Pixel convention: pixel (i, j) covers [i − 0.5, i + 0.5] × [j − 0.5, j + 0.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -504,33 +505,41 @@ def _halos(
     return glow * np.maximum(1.0 + grains, 0.0)
 
 
-def _randn(shape: tuple[int, int], rng: np.random.Generator) -> NDArray[np.float32]:
-    """Standard normal float32 samples from OpenCV's generator (``cv2.randn``: 4x faster than
-    numpy's), seeded from ``rng`` so that a capture stays a function of its seed. OpenCV's
-    default generator is per thread, so concurrent renders do not disturb each other."""
+def _randn(
+    shape: tuple[int, int], rng: np.random.Generator, sigma: float = 1.0
+) -> NDArray[np.float32]:
+    """Normal float32 samples of standard deviation ``sigma`` from OpenCV's generator
+    (``cv2.randn``: 4x faster than numpy's; it scales N(0, 1) samples in float32, so a sigma
+    here is bit for bit a multiplication after), seeded from ``rng`` so that a capture stays a
+    function of its seed. OpenCV's default generator is per thread, so concurrent renders do
+    not disturb each other."""
     out = np.empty(shape, dtype=np.float32)
     cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
-    cv2.randn(out, 0.0, 1.0)  # type: ignore[call-overload, unused-ignore]  # (stubs want arrays, not floats)
+    cv2.randn(out, 0.0, sigma)  # type: ignore[call-overload, unused-ignore]  # (stubs want arrays, not floats)
     return out
 
 
 def _noise(
     signal: NDArray[np.float32], options: RenderOptions, rng: np.random.Generator
 ) -> NDArray[np.float32]:
-    noise = _randn((signal.shape[0], signal.shape[1]), rng)
+    shape = (signal.shape[0], signal.shape[1])
     if options.shot_noise_gain > 0:
+        noise = _randn(shape, rng)
         var = np.float32(options.noise_sigma**2) + np.float32(options.shot_noise_gain) * np.maximum(
             signal, np.float32(0.0)
         )
         noise *= cv2.sqrt(var)
         return noise
-    noise *= np.float32(options.noise_sigma)
-    return noise
+    return _randn(shape, rng, options.noise_sigma)
 
 
-def _to_u8(img: NDArray) -> NDArray[np.uint8]:
-    """Round (half to even, as np.rint) and saturate to 0…255."""
-    return np.asarray(cv2.add(img, 0.0, dtype=cv2.CV_8U), dtype=np.uint8)  # type: ignore[call-overload, unused-ignore]  # opencv 5.0 stubs only
+def sensor_image(
+    signal: NDArray[np.float32], options: RenderOptions, rng: np.random.Generator
+) -> NDArray[np.uint8]:
+    """What the sensor makes of the light ``signal`` (float32 gray levels): plus read and shot
+    noise (``options``, drawn from ``rng``), rounded half to even and saturated to 0…255."""
+    noise = _noise(signal, options, rng)
+    return np.asarray(cv2.add(signal, noise, dtype=cv2.CV_8U), dtype=np.uint8)  # type: ignore[call-overload, unused-ignore]  # opencv 5.0 stubs only
 
 
 def _box_around(
@@ -611,11 +620,26 @@ def _dots_in_disk(
     pos = np.asarray(rc, dtype=np.float64).reshape(-1, 2)
     keep = cam.in_disk(pos) if len(pos) else np.zeros(0, dtype=bool)
     f = np.ones(len(pos)) if flux is None else np.broadcast_to(np.asarray(flux, float), len(pos))
+    return pos[keep], f[keep], disk_mask(cam)
+
+
+def disk_mask(cam: MirrorCamera) -> NDArray[np.bool_]:
+    """(rows, cols) bool: the pixels inside the camera's mirror disk (read-only, computed once
+    per camera)."""
     rows, cols = cam.image_shape
-    dr = np.arange(rows, dtype=np.float32)[:, None] - np.float32(cam.center_row_px)
-    dc = np.arange(cols, dtype=np.float32)[None, :] - np.float32(cam.center_col_px)
-    disk = (dr * dr + dc * dc) <= np.float32(cam.disk_radius_px**2)
-    return pos[keep], f[keep], disk
+    return _disk_mask(rows, cols, cam.center_row_px, cam.center_col_px, cam.disk_radius_px)
+
+
+@functools.lru_cache(maxsize=16)
+def _disk_mask(
+    rows: int, cols: int, center_row_px: float, center_col_px: float, radius_px: float
+) -> NDArray[np.bool_]:
+    """:func:`disk_mask`, by the camera's numbers."""
+    dr = np.arange(rows, dtype=np.float32)[:, None] - np.float32(center_row_px)
+    dc = np.arange(cols, dtype=np.float32)[None, :] - np.float32(center_col_px)
+    disk = (dr * dr + dc * dc) <= np.float32(radius_px**2)
+    disk.flags.writeable = False
+    return disk
 
 
 def _spot_draws(
@@ -697,21 +721,18 @@ def render_camera_pair(
     drawn; the part of a dot's light outside the disk is lost; the sensor rounds and clips at
     0 and 255.
     """
-    shape = cam.image_shape
     pos, f, disk = _dots_in_disk(cam, rc, flux)
     spots = options.spots
     sig, amp = _spot_draws(spots, f, rng)
-    scene_rng = rng if scene_seed is None else np.random.default_rng(scene_seed)
-    texture = _smooth_texture(shape, scene_rng)
-    scene = np.where(
-        disk, options.background_level + options.background_texture * texture, OUTSIDE_DISK_LEVEL
-    ).astype(np.float32)
+    if scene_seed is None:
+        scene = _scene(disk, options.background_level, options.background_texture, rng)
+    else:  # the same scene every time: drawn once
+        scene = _fixed_scene(cam, options.background_level, options.background_texture, scene_seed)
     laser = _laser_light(cam, pos, sig, amp, spots, disk, rng)
-    lit = scene * np.float32(1.0 + options.flicker)
+    lit = scene if options.flicker == 0.0 else scene * np.float32(1.0 + options.flicker)
     if not options.color:
-        mask = scene + _noise(scene, options, rng)
-        base = lit + laser + _noise(lit + laser, options, rng)
-        return _to_u8(mask), _to_u8(base)
+        mask = sensor_image(scene, options, rng)
+        return mask, sensor_image(lit + laser, options, rng)
     # Green laser over a slightly tinted scene: each channel has its own gain and noise; the
     # laser is strong in G with a little cross-talk into B and R.
     tint = (0.9, 1.0, 1.1)
@@ -721,11 +742,30 @@ def render_camera_pair(
     for t, x in zip(tint, cross, strict=True):
         sc = scene * np.float32(t)
         sl = lit * np.float32(t) + laser * np.float32(x)
-        masks.append(_to_u8(sc + _noise(sc, options, rng)))
-        bases.append(_to_u8(sl + _noise(sl, options, rng)))
+        masks.append(sensor_image(sc, options, rng))
+        bases.append(sensor_image(sl, options, rng))
     return np.asarray(cv2.merge(masks), dtype=np.uint8), np.asarray(
         cv2.merge(bases), dtype=np.uint8
     )
+
+
+def _scene(
+    disk: NDArray[np.bool_], level: float, texture_gray: float, rng: np.random.Generator
+) -> NDArray[np.float32]:
+    """The scene a camera sees without laser (float32 gray levels): ``level`` plus a smooth
+    texture of amplitude ``texture_gray`` inside the mirror ``disk``, the housing outside."""
+    texture = _smooth_texture((disk.shape[0], disk.shape[1]), rng)
+    return np.where(disk, level + texture_gray * texture, OUTSIDE_DISK_LEVEL).astype(np.float32)
+
+
+@functools.lru_cache(maxsize=8)
+def _fixed_scene(
+    cam: MirrorCamera, level: float, texture_gray: float, scene_seed: int
+) -> NDArray[np.float32]:
+    """:func:`_scene` of texture seed ``scene_seed`` (read-only: computed once per camera)."""
+    scene = _scene(disk_mask(cam), level, texture_gray, np.random.default_rng(scene_seed))
+    scene.flags.writeable = False
+    return scene
 
 
 def visible_truth(cam: MirrorCamera, rc: ArrayLike, margin_px: float = 0.0) -> NDArray[np.float64]:

@@ -109,34 +109,42 @@ def test_clipped_tops_are_fitted_as_censored_data() -> None:
     # flank fitted with the top censored: the size is the least sure part)
 
 
-def test_two_spot_test_splits_blends_and_not_stretched_spots() -> None:
-    """Over 12 noise draws each: two spots 2.5 σ apart (a doubled beam) are told from one —
-    both centres within 0.2 px — and one spot stretched 1.6x along a random axis (the mirror's
-    rim) is not: the two agree to second order, not at fourth."""
-    from omnid.core.spotfit import two_spot_test
+def test_detector_splits_blends_and_not_stretched_spots() -> None:
+    """Over 12 noise draws each (the detector with ``split_blends``): two spots 2.5 σ apart
+    (a doubled beam: one maximum) come out as two dots, both within 0.2 px, and one spot
+    stretched 1.6x along a random axis (the mirror's rim) and a round one as one dot each:
+    a blend and a stretched spot agree to second order, not at fourth."""
+    from omnid.core.detect import DetectionParams, _detect_best
 
     rng = np.random.default_rng(5)
     sigma = 1.3
-    blends, stretched = 0, 0
-    yy, xx = np.mgrid[0:21, 0:21].astype(np.float64)
+    blends, stretched, lone = 0, 0, 0
+    shape = (48, 96)
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
     for _ in range(12):
         ang = rng.uniform(0, math.pi)
-        centre = np.array([10.0, 10.0]) + rng.uniform(-0.5, 0.5, 2)
-        half = 1.25 * sigma * np.array([math.cos(ang), math.sin(ang)])
-        two = draw_spots((21, 21), [centre + half, centre - half], sigma, [140.0, 90.0])
+        axis = np.array([math.cos(ang), math.sin(ang)])
+        c_two, c_one, c_round = (
+            np.array([24.0, x]) + rng.uniform(-0.5, 0.5, 2) for x in (20.0, 48.0, 76.0)
+        )
+        half = 1.25 * sigma * axis
+        truth = np.array([c_two + half, c_two - half])
+        img = draw_spots(shape, [*truth, c_round], sigma, [140.0, 90.0, 140.0])
         # one spot of σ (1.6 σ, σ) along (ang, ang + 90°)
-        u = (yy - centre[0]) * math.cos(ang) + (xx - centre[1]) * math.sin(ang)
-        v = -(yy - centre[0]) * math.sin(ang) + (xx - centre[1]) * math.cos(ang)
-        one = 150.0 * np.exp(-0.5 * ((u / (1.6 * sigma)) ** 2 + (v / sigma) ** 2))
-        for img, is_two in ((two, True), (one, False)):
-            noisy = (img + rng.normal(0.0, 2.0, img.shape)).astype(np.float32)
-            ev, cen, _ = two_spot_test(noisy, centre[:1], centre[1:], sigma)
-            if is_two:
-                got = cen[0].reshape(2, 2)
-                want = np.array([centre + half, centre - half])
-                err = min(np.abs(got - want).max(), np.abs(got[::-1] - want).max())  # either order
-                blends += int(ev[0] >= 25.0 and err < 0.2)
-            else:
-                stretched += int(ev[0] < 25.0)
+        u = (yy - c_one[0]) * axis[0] + (xx - c_one[1]) * axis[1]
+        v = -(yy - c_one[0]) * axis[1] + (xx - c_one[1]) * axis[0]
+        img = img + 150.0 * np.exp(-0.5 * ((u / (1.6 * sigma)) ** 2 + (v / sigma) ** 2))
+        mask = np.full(shape, 40.0) + rng.normal(0.0, 2.0, shape)
+        base = mask + img + rng.normal(0.0, 2.0, shape)
+        dots = _detect_best(
+            mask.astype(np.float32), base.astype(np.float32), DetectionParams(), split_blends=True
+        )
+        near = [dots[np.hypot(*(dots[:, :2] - p).T) < 4.0, :2] for p in (c_two, c_one, c_round)]
+        if len(near[0]) == 2:
+            err = min(np.abs(near[0] - truth).max(), np.abs(near[0][::-1] - truth).max())
+            blends += int(err < 0.2)
+        stretched += int(len(near[1]) == 1)
+        lone += int(len(near[2]) == 1)
     assert blends >= 11
     assert stretched >= 11
+    assert lone >= 11
