@@ -117,8 +117,9 @@ class SceneTexture:
     floor extent, sampled at (x + 0.7·h, y − 0.7·h) so that box sides are textured too.
 
     The image is a function of the model's texture settings, the extent and the seed: it is
-    built once per process for each such set (read-only, shared by every simulator that asks
-    for the same one; a texture takes ~0.5 s and 20 MB)."""
+    built when first sampled (a run without rendered frames never needs it), once per process
+    for each such set (read-only, shared by every simulator that asks for the same one; a
+    texture takes ~0.5 s and 20 MB)."""
 
     def __init__(
         self,
@@ -139,7 +140,12 @@ class SceneTexture:
             model.grout_mm,
             model.grout_gray,
         )
-        self.image = _texture_image(look, tuple(extent_mm), int(seed), texel_mm, floor_px_mm)
+        self._key = (look, tuple(extent_mm), int(seed), texel_mm, floor_px_mm)
+
+    @property
+    def image(self) -> NDArray[np.float32]:
+        """The texture image (rows: y, columns: x, one texel per ``texel_mm``), gray levels."""
+        return _texture_image(*self._key)
 
     def texel_coordinates(
         self, x_mm: NDArray[np.float64], y_mm: NDArray[np.float64], h_mm: NDArray[np.float64]
@@ -179,8 +185,13 @@ def _texture_image(
         )
         return np.asarray(big[:rows, :cols], dtype=np.float32)
 
-    img = level + contrast * field(245.0)
-    img = img + detail * field(30.0)
+    # in place (20 MB arrays): the same sums as level + contrast·coarse + detail·fine
+    img = field(245.0)
+    img *= np.float32(contrast)
+    img += np.float32(level)
+    fine = field(30.0)
+    fine *= np.float32(detail)
+    img += fine
     if texture == "tiles":
         xs = x0 + texel_mm * np.arange(cols, dtype=np.float64)[None, :]
         ys = y0 + texel_mm * np.arange(rows, dtype=np.float64)[:, None]
@@ -195,7 +206,7 @@ def _texture_image(
     # pre-filter to a floor pixel's footprint (the mirror images the floor at a uniform
     # ~10 mm per px): sampling then does not alias
     sigma = 0.4 * floor_px_mm / texel_mm
-    image = np.asarray(cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma), dtype=np.float32)
+    image = np.asarray(cv2.GaussianBlur(img, (0, 0), sigma), dtype=np.float32)
     image.flags.writeable = False
     return image
 
