@@ -19,7 +19,11 @@ captures (its own floor calibration, in a subprocess); the number of points and 
 right (within 1.5 px of a true dot in both images); the load average (the machine may be shared:
 prefer the ratios).
 
-Run from the repository root:  python tools/bench_perception_core.py [--repeats 50]
+With ``--split-blends``, also the whole ``perceive`` with the detector's experimental blend split
+(``detect._split_blends``) against the default, interleaved run by run in this process (same
+captures, same calibration), and how many points each gets right.
+
+Run from the repository root:  python tools/bench_perception_core.py [--repeats 50] [--split-blends]
 """
 
 from __future__ import annotations
@@ -133,14 +137,26 @@ def old_best(
     return lo, med, p90, int(n)
 
 
-def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
-    rig = StereoRig.nominal()
-    opts = RenderOptions.realistic()
-    laser = LASERS[name]()
-    xyz = scene(rig, laser)
-    calib = calibrate_installed(rig, laser, seed=99, options=opts)
-    cap = render_capture(rig, xyz, opts, seed=3)
-    cloud = perceive(cap, calib, "best")
+def interleaved(
+    fa: Callable[[], object], fb: Callable[[], object], repeats: int
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """((min, median) of fa, (min, median) of fb) in ms, the two called in turn ``repeats``
+    times each after one warm-up each (the machine's load falls on both alike)."""
+    fa()
+    fb()
+    ta: list[float] = []
+    tb: list[float] = []
+    for _ in range(repeats):
+        for fn, out in ((fa, ta), (fb, tb)):
+            t0 = time.perf_counter()
+            fn()
+            out.append(time.perf_counter() - t0)
+    a, b = 1e3 * np.array(ta), 1e3 * np.array(tb)
+    return (float(a.min()), float(np.median(a))), (float(b.min()), float(np.median(b)))
+
+
+def right_points(rig: StereoRig, xyz: np.ndarray, cloud: PointCloud) -> int:
+    """Points of ``cloud`` within 1.5 px of a true dot in both images."""
     true_px = rig.project(xyz)
     d = np.hypot(
         cloud.pixels[:, None, 0] - true_px[None, :, 0],
@@ -150,8 +166,47 @@ def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
         cloud.pixels[:, None, 2] - true_px[None, :, 2],
         cloud.pixels[:, None, 3] - true_px[None, :, 3],
     )
-    right = int(((d < 1.5) & (d2 < 1.5)).any(axis=1).sum())
-    n_vis = int(rig.visible(true_px).sum())
+    return int(((d < 1.5) & (d2 < 1.5)).any(axis=1).sum())
+
+
+def bench_split(rig: StereoRig, xyz: np.ndarray, cap: StereoCapture, calib, repeats: int) -> None:
+    """The whole ``perceive`` with the experimental blend split against without, interleaved."""
+    import functools
+
+    from omnid.core import detect
+
+    plain = detect._detect_best
+    split = functools.partial(plain, split_blends=True)
+
+    def run(fn: Callable[..., np.ndarray]) -> Callable[[], PointCloud]:
+        def go() -> PointCloud:
+            detect._detect_best = fn
+            try:
+                return perceive(cap, calib, "best")
+            finally:
+                detect._detect_best = plain
+
+        return go
+
+    (s_lo, s_med), (p_lo, p_med) = interleaved(run(split), run(plain), repeats)
+    n_s, n_p = right_points(rig, xyz, run(split)()), right_points(rig, xyz, run(plain)())
+    print(
+        f"{'perceive best + blend split':34s} {s_lo:8.2f} {s_med:10.2f}  ({n_s} points right)\n"
+        f"{'perceive best (interleaved ref)':34s} {p_lo:8.2f} {p_med:10.2f}  ({n_p} points right)\n"
+        f"ratio split / default: {s_lo / p_lo:.2f} (min), {s_med / p_med:.2f} (median)"
+    )
+
+
+def bench_laser(name: str, repeats: int, old_root: str | None, split: bool = False) -> None:
+    rig = StereoRig.nominal()
+    opts = RenderOptions.realistic()
+    laser = LASERS[name]()
+    xyz = scene(rig, laser)
+    calib = calibrate_installed(rig, laser, seed=99, options=opts)
+    cap = render_capture(rig, xyz, opts, seed=3)
+    cloud = perceive(cap, calib, "best")
+    right = right_points(rig, xyz, cloud)
+    n_vis = int(rig.visible(rig.project(xyz)).sum())
     print(
         f"\n## laser {name}: dots cast {len(xyz)}; visible in both cameras {n_vis}; "
         f"perceived points {len(cloud.xyz)}, right {right}"
@@ -208,6 +263,8 @@ def bench_laser(name: str, repeats: int, old_root: str | None) -> None:
             print(f"{'old best, whole (ref)':34s} {lo:8.2f} {med:10.2f} {p90:8.2f}  ({n} points)")
             print(f"ratio old best / best (median): {med / best:.2f}")
             print(f"ratio old best / best (min): {lo / mins['perceive best, whole']:.2f}")
+    if split:
+        bench_split(rig, xyz, cap, calib, repeats)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -217,10 +274,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--old-root", default=None, help="also time this checkout's best (same captures)"
     )
+    ap.add_argument(
+        "--split-blends",
+        action="store_true",
+        help="also time perceive with the experimental blend split, interleaved with the default",
+    )
     args = ap.parse_args(argv)
     print(one_core(cv2))
     for name in LASERS if args.laser == "all" else [args.laser]:
-        bench_laser(name, args.repeats, args.old_root)
+        bench_laser(name, args.repeats, args.old_root, args.split_blends)
     print(f"\nload average after: {load_average()}")
     return 0
 

@@ -11,6 +11,8 @@ the median and the worst decile over rigs, the pooled rates, and how calibration
     python tools/eval_rigs.py --approach       # phantoms driving up to a passage and a wall:
                                                # 30 rigs x 2 scenes x 65 poses (25 mm apart)
     python tools/eval_rigs.py --misses         # what the empty floor's misses are (30 rigs x 2)
+    python tools/eval_rigs.py --split-blends   # any of the above with the experimental blend
+                                               # split in the detector (detect._split_blends)
 """
 
 from __future__ import annotations
@@ -60,11 +62,22 @@ def main(argv: list[str] | None = None) -> int:
         help="the empty floor's misses: separation, doubled twin, the blob's point",
     )
     ap.add_argument("--step-mm", type=float, default=25.0, help="--approach: pose step (25 mm)")
+    ap.add_argument(
+        "--split-blends",
+        action="store_true",
+        help="the detector splits blends of two spots (experimental, detect._split_blends)",
+    )
     args = ap.parse_args(argv)
     import cv2
 
     cv2.setNumThreads(1)
     ex = _load_experiments(args.old_root)
+    if args.split_blends:
+        import functools
+
+        from omnid.core import detect
+
+        detect._detect_best = functools.partial(detect._detect_best, split_blends=True)
     import omnid
 
     n_rigs = 10 if args.quick else args.rigs

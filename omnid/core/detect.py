@@ -816,6 +816,26 @@ def _detect_best(
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
 
 
+def _pairs_near(
+    k: NDArray[np.intp], r: NDArray[np.float64], c: NDArray[np.float64], reach_px: float
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """(a, j): dot k[a] and another dot j at most ``reach_px`` apart (Euclidean), every such
+    pair: all pairs tested at once for a few dots k, else from the grid of
+    :func:`~omnid.core.spotfit.near_pairs`."""
+    if len(k) * len(r) <= 20000:
+        dr, dc = r[k][:, None] - r[None, :], c[k][:, None] - c[None, :]
+        close = dr * dr + dc * dc <= reach_px * reach_px
+        close[np.arange(len(k)), k] = False
+        a, j = np.nonzero(close)
+        return a.astype(np.intp), j.astype(np.intp)
+    i, j = spotfit.near_pairs(r, c, reach_px, sort=False)
+    local = np.full(len(r), -1, dtype=np.intp)
+    local[k] = np.arange(len(k))
+    a = local[i]
+    keep = (a >= 0) & (np.hypot(r[i] - r[j], c[i] - c[j]) <= reach_px)
+    return a.compress(keep), j.compress(keep)
+
+
 def _own_curvature(
     sm: NDArray,
     rows: NDArray[np.intp],
@@ -825,9 +845,11 @@ def _own_curvature(
     top: NDArray,
     filtered_var: float,
     k: NDArray[np.intp],
+    pairs: tuple[NDArray[np.intp], NDArray[np.intp]],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """The principal variances (long, short; px²) of the smoothed light of dots ``k`` at their
-    maxima, its neighbours' light taken out, and the long axis (len(k), 2).
+    maxima, its neighbours' light taken out, and the long axis (len(k), 2); ``pairs`` (a, j):
+    dot k[a] and a neighbour j (:func:`_pairs_near`).
 
     The 3x3 log-quadratic of ``sm`` gives the Hessian of ln f at the maximum, i.e. H(f)/f
     (the gradient vanishes there). Each neighbour j, a Gaussian of the filtered variance v
@@ -840,18 +862,16 @@ def _own_curvature(
     _, _, _, qr, qc, qrc = (_Q_SOLVE32.T @ logs).astype(np.float64)
     f = np.abs(top[k]).astype(np.float64)
     hrr, hcc, hrc = 2.0 * qr * f, 2.0 * qc * f, qrc * f
-    reach = math.sqrt(2.0 * filtered_var * math.log(1e3))  # light below 1/1000 of its peak
-    xr = r[k][:, None] - r[None, :]
-    xc = c[k][:, None] - c[None, :]
-    q = xr * xr + xc * xc
-    q[np.arange(len(k)), k] = np.inf  # (not its own neighbour)
-    q[q > reach * reach] = np.inf
-    e = np.abs(top[None, :]).astype(np.float64) * np.exp(q * (-0.5 / filtered_var))
+    a, j = pairs
+    xr = r[k].take(a) - r.take(j)
+    xc = c[k].take(a) - c.take(j)
+    e = np.abs(top.take(j)).astype(np.float64) * np.exp((xr * xr + xc * xc) * (-0.5 / filtered_var))
     inv_v, inv_v2 = 1.0 / filtered_var, 1.0 / (filtered_var * filtered_var)
-    hrr -= np.sum(e * (xr * xr * inv_v2 - inv_v), axis=1)
-    hcc -= np.sum(e * (xc * xc * inv_v2 - inv_v), axis=1)
-    hrc -= np.sum(e * (xr * xc * inv_v2), axis=1)
-    own = np.maximum(f - e.sum(axis=1), 0.05 * f)
+    n = len(k)
+    hrr -= np.bincount(a, weights=e * (xr * xr * inv_v2 - inv_v), minlength=n)
+    hcc -= np.bincount(a, weights=e * (xc * xc * inv_v2 - inv_v), minlength=n)
+    hrc -= np.bincount(a, weights=e * (xr * xc * inv_v2), minlength=n)
+    own = np.maximum(f - np.bincount(a, weights=e, minlength=n), 0.05 * f)
     hrr, hcc, hrc = hrr / own, hcc / own, hrc / own
     mid = 0.5 * (hrr + hcc)
     rad = np.sqrt(0.25 * (hrr - hcc) ** 2 + hrc * hrc)
@@ -952,20 +972,36 @@ def _split_blends(
         return rows, cols, centre, r, c, clipped, none, none
     h, w = sm.shape
     spread2 = sigma * sigma + 1.0 + 1.0 / 12.0  # a spot's variance after the σ = 1 smoothing
-    elongation = _blend_elongation(spread2, _SPLIT_MIN_SIGMAS * sigma, relative_peak)
+    # (the image's spot size to 0.01 px: one threshold per size, computed once)
+    s_key = round(sigma, 2)
+    elongation = _blend_elongation(
+        s_key * s_key + 1.0 + 1.0 / 12.0, _SPLIT_MIN_SIGMAS * s_key, relative_peak
+    )
     # (the raw curvatures first: a neighbour only ever adds elongation to them)
     _, _, mean_var, max_var, ok = _log_quadratic(sm, rows, cols)
     min_var = 1.0 / np.maximum(2.0 / mean_var - 1.0 / max_var, 1e-12)
     ask = np.flatnonzero(ok & (max_var >= elongation * min_var))
     if len(ask) == 0:
         return rows, cols, centre, r, c, clipped, none, none
-    v_long, v_short, axis = _own_curvature(sm, rows, cols, r, c, centre, spread2, ask)
+    # the neighbours whose light reaches a candidate's test window (and its 3x3 curvature)
+    scale = math.sqrt(sigma * sigma + 1.0 / 12.0)
+    reach = spotfit.window_half_px(sigma) * math.sqrt(2.0) + 3.0 * scale
+    a, j = _pairs_near(ask, r, c, reach)
+    v_long, v_short, axis = _own_curvature(sm, rows, cols, r, c, centre, spread2, ask, (a, j))
     keep = v_long >= elongation * v_short
-    ask, axis = ask[keep], axis[keep]
-    if len(ask) == 0:
+    if not keep.any():
         return rows, cols, centre, r, c, clipped, none, none
+    ask, axis = ask[keep], axis[keep]
+    renumber = np.cumsum(keep) - 1
+    kept = keep[a]
+    a, j = renumber[a[kept]], j[kept]
     valid = None if saturated is None else ~saturated
-    test = spotfit.blend_test(d, r[ask], c[ask], axis, sigma, noise, valid)
+    # the other dots, round spots of the image's size (their peak from the smoothed one),
+    # are taken out of each window
+    peak = np.abs(centre).astype(np.float64) * spread2 / (sigma * sigma + 1.0 / 12.0)
+    test = spotfit.blend_test(
+        d, r[ask], c[ask], axis, sigma, noise, valid, (a, r[j], c[j], peak[j])
+    )
     two = (test.evidence > 0) & test.interior & (test.separation >= _SPLIT_MIN_SIGMAS)
     cen = test.centres
     ir = np.rint(cen[:, :, 0]).astype(np.intp)

@@ -472,7 +472,7 @@ BLEND_SEPARATIONS = (1.0, 4.0)
 BLEND_STRETCHES = np.arange(1.0, 3.01, 0.1)
 #: Bins of the along-axis coordinate (units of s) the window's pixels are summed into: every
 #: hypothesis's normal equations are then one small matrix product of these sums.
-_BLEND_BIN = 0.02
+_BLEND_BIN = 0.1
 _BLEND_BINS = np.arange(-6.5, 6.5 + 1e-9, _BLEND_BIN)  # (a window's corner: ≤ 6 s)
 _BLEND_T = np.arange(-BLEND_REACH, BLEND_REACH + 1e-9, BLEND_STEP)
 _BLEND_T_HALF = np.arange(-BLEND_REACH, BLEND_REACH + 1e-9, BLEND_STEP / 2.0)
@@ -492,14 +492,20 @@ _K_PAIR = _kernel((_BLEND_BINS[:, None] - _BLEND_T_HALF[None, :]) ** 2)
 _K_ONE = _kernel(0.5 * (_BLEND_BINS[:, None] / BLEND_STRETCHES[None, :]) ** 2)
 _K_ONE2 = _kernel((_BLEND_BINS[:, None] / BLEND_STRETCHES[None, :]) ** 2)
 _lo, _hi = (round(x / BLEND_STEP) for x in BLEND_SEPARATIONS)
-# the pairs (i1 > i2) of positions on _BLEND_T at the allowed separations
+# the pairs of positions on _BLEND_T at the allowed separations, t1 > 0 > t2: two spots that
+# are one blob lie on both sides of its maximum
+_ii = np.arange(len(_BLEND_T))
+_sep_i = np.subtract.outer(_ii, _ii)
 _PAIR_I1, _PAIR_I2 = (
     a.ravel()
     for a in np.nonzero(
-        (np.subtract.outer(np.arange(len(_BLEND_T)), np.arange(len(_BLEND_T))) >= _lo)
-        & (np.subtract.outer(np.arange(len(_BLEND_T)), np.arange(len(_BLEND_T))) <= _hi)
+        (_sep_i >= _lo)
+        & (_sep_i <= _hi)
+        & (_BLEND_T[:, None] > 0.5 * BLEND_STEP)
+        & (_BLEND_T[None, :] < -0.5 * BLEND_STEP)
     )
 )
+del _ii, _sep_i
 _PAIR_SEP = (_PAIR_I1 - _PAIR_I2) * BLEND_STEP
 _PAIR_INTERIOR = (
     (_lo < _PAIR_I1 - _PAIR_I2)
@@ -534,6 +540,7 @@ def blend_test(
     sigma_px: float,
     noise_gray: float,
     valid: NDArray[np.bool_] | None = None,
+    neighbours: tuple[NDArray[np.intp], NDArray, NDArray, NDArray] | None = None,
 ) -> BlendTest:
     """Is each blob (its maximum at sub-pixel ``r``, ``c`` of a background-free ``image``, its
     light elongated along the unit vector ``axis`` (n, 2)) one spot or two?
@@ -545,9 +552,14 @@ def blend_test(
 
     - one spot centred on the maximum, stretched along ``axis`` by k (:data:`BLEND_STRETCHES`):
       a spot the mirror's rim stretches (1 nonlinear parameter);
-    - two round spots anywhere on the line through the maximum along ``axis``, at positions
-      t₁ > t₂ (:data:`BLEND_STEP` apart on ±:data:`BLEND_REACH` s, separations
-      :data:`BLEND_SEPARATIONS`): two beams of a doubled beam, or a dot and its ghost (2).
+    - two round spots on the line through the maximum along ``axis``, on both sides of it
+      (two spots that are one blob), at positions t₁ > 0 > t₂ (:data:`BLEND_STEP` apart on
+      ±:data:`BLEND_REACH` s, separations :data:`BLEND_SEPARATIONS`): two beams of a doubled
+      beam, or a dot and its ghost (2).
+
+    The other dots near each blob (``neighbours``: the blob's index, and the dot's row, col
+    and peak), round spots of the image's size, are taken out of its window first: a
+    neighbour's light is no second spot.
 
     Both models are a round Gaussian across the axis times a profile along it, so every sum
     of their normal equations is a sum over the window's pixels of a function of their
@@ -569,6 +581,19 @@ def blend_test(
     wt = np.ones_like(y) if valid is None else valid[pr, pc].astype(np.float64)
     m = y.shape[1]
     scale = math.sqrt(sigma_px * sigma_px + 1.0 / 12.0)
+    if neighbours is not None and len(neighbours[0]):
+        ki, o_r, o_c, o_peak = neighbours
+        qr = pr[ki] - o_r[:, None]
+        qc = pc[ki] - o_c[:, None]
+        light = o_peak[:, None] * np.exp((qr * qr + qc * qc) * (-0.5 / (scale * scale)))
+        y -= np.asarray(
+            np.bincount(
+                (ki[:, None] * m + np.arange(m)[None, :]).ravel(),
+                weights=light.ravel(),
+                minlength=n * m,
+            ),
+            dtype=np.float64,
+        ).reshape(n, m)
     er, ec = axis[:, 0:1], axis[:, 1:2]
     dr, dc = pr - r[:, None], pc - c[:, None]
     along = (dr * er + dc * ec) / scale
@@ -602,6 +627,7 @@ def blend_test(
     gy = h_ry @ _K_SPOT  # Σ w g(t) y
     gg = h_rr @ _K_PAIR  # Σ w R² exp(−(a − t)²), on the half-step grid
     mean_s, mean_y = (1.0 / s0)[:, None], (sy / s0)[:, None]
+    each = np.arange(n)[:, None]
 
     def two_spots(
         i1: NDArray[np.intp], i2: NDArray[np.intp]
@@ -609,7 +635,7 @@ def blend_test(
         """SSR and the two amplitudes of the hypotheses (positions i1 > i2 on _BLEND_T)."""
 
         def take(a: NDArray[np.float64], i: NDArray[np.intp]) -> NDArray[np.float64]:
-            return np.take_along_axis(a, np.broadcast_to(i, (n, i.shape[-1])), axis=1)
+            return a[:, i] if i.ndim == 1 else a[each, i]
 
         g_1, g_2 = take(gs, i1), take(gs, i2)
         a11 = take(gg, 2 * i1) - g_1 * g_1 * mean_s
