@@ -491,6 +491,9 @@ _K_SPOT = _kernel(0.5 * (_BLEND_BINS[:, None] - _BLEND_T[None, :]) ** 2)
 _K_PAIR = _kernel((_BLEND_BINS[:, None] - _BLEND_T_HALF[None, :]) ** 2)
 _K_ONE = _kernel(0.5 * (_BLEND_BINS[:, None] / BLEND_STRETCHES[None, :]) ** 2)
 _K_ONE2 = _kernel((_BLEND_BINS[:, None] / BLEND_STRETCHES[None, :]) ** 2)
+# (side by side: the sums of w·R and w·R·y take the first, those of w·R² the second)
+_K_LIGHT = np.ascontiguousarray(np.hstack([_K_ONE, _K_SPOT]))
+_K_SQUARE = np.ascontiguousarray(np.hstack([_K_ONE2, _K_PAIR]))
 _lo, _hi = (round(x / BLEND_STEP) for x in BLEND_SEPARATIONS)
 # the pairs of positions on _BLEND_T at the allowed separations, t1 > 0 > t2: two spots that
 # are one blob lie on both sides of its maximum
@@ -507,6 +510,7 @@ _PAIR_I1, _PAIR_I2 = (
 )
 del _ii, _sep_i
 _PAIR_SEP = (_PAIR_I1 - _PAIR_I2) * BLEND_STEP
+_PAIR_OVERLAP = np.exp(-0.25 * _PAIR_SEP**2)
 _PAIR_INTERIOR = (
     (_lo < _PAIR_I1 - _PAIR_I2)
     & (_hi > _PAIR_I1 - _PAIR_I2)
@@ -605,34 +609,41 @@ def blend_test(
     flat = (k + nb * np.arange(n)[:, None]).ravel()
     wr = wt * rnd
 
-    def binned(v: NDArray[np.float64]) -> NDArray[np.float64]:
-        out = np.bincount(flat, weights=v.ravel(), minlength=n * nb)
-        return np.asarray(out, dtype=np.float64).reshape(n, nb)
-
-    h_rr, h_r, h_ry = binned(wr * rnd), binned(wr), binned(wr * y)
+    # one count of the three weights: w·R², w·R and w·R·y per bin (n, nb) each
+    w_r = wr.ravel()
+    hist = np.asarray(
+        np.bincount(
+            np.concatenate([flat, flat + n * nb, flat + 2 * n * nb]),
+            weights=np.concatenate([w_r * rnd.ravel(), w_r, w_r * y.ravel()]),
+            minlength=3 * n * nb,
+        ),
+        dtype=np.float64,
+    ).reshape(3, n, nb)
     s0 = wt.sum(axis=1)
     sy = (wt * y).sum(axis=1)
     syy = (wt * y * y).sum(axis=1)
     base = syy - sy * sy / np.maximum(s0, 1e-12)  # the constant alone
+    ks = len(BLEND_STRETCHES)
+    light = hist[1:].reshape(2 * n, nb) @ _K_LIGHT  # Σ w g and Σ w g y, both families
+    square = hist[0] @ _K_SQUARE  # Σ w g², and Σ w R² exp(−(a − t)²) on the half-step grid
     # one stretched spot: a' = Σ w g² − (Σ w g)²/S0, b' = Σ w g y − Σ w g · Sy / S0
-    g1 = h_r @ _K_ONE
-    a1 = h_rr @ _K_ONE2 - g1 * g1 / s0[:, None]
-    b1 = h_ry @ _K_ONE - g1 * (sy / s0)[:, None]
+    g1 = light[:n, :ks]
+    a1 = square[:, :ks] - g1 * g1 / s0[:, None]
+    b1 = light[n:, :ks] - g1 * (sy / s0)[:, None]
     ssr1_all = base[:, None] - np.where(
         (b1 > 0) & (a1 > 1e-12), b1 * b1 / np.maximum(a1, 1e-12), 0.0
     )
     ssr1 = ssr1_all.min(axis=1)
-    # two round spots at t1 > t2 on the line
-    gs = h_r @ _K_SPOT  # Σ w g(t)
-    gy = h_ry @ _K_SPOT  # Σ w g(t) y
-    gg = h_rr @ _K_PAIR  # Σ w R² exp(−(a − t)²), on the half-step grid
+    # two round spots at t1 > 0 > t2 on the line
+    gs, gy, gg = light[:n, ks:], light[n:, ks:], square[:, ks:]
     mean_s, mean_y = (1.0 / s0)[:, None], (sy / s0)[:, None]
     each = np.arange(n)[:, None]
 
     def two_spots(
-        i1: NDArray[np.intp], i2: NDArray[np.intp]
+        i1: NDArray[np.intp], i2: NDArray[np.intp], overlap: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """SSR and the two amplitudes of the hypotheses (positions i1 > i2 on _BLEND_T)."""
+        """SSR and the two amplitudes of the hypotheses (positions i1 > i2 on _BLEND_T;
+        ``overlap`` exp(−(t1 − t2)²/4), the two spots' product's factor)."""
 
         def take(a: NDArray[np.float64], i: NDArray[np.intp]) -> NDArray[np.float64]:
             return a[:, i] if i.ndim == 1 else a[each, i]
@@ -640,7 +651,7 @@ def blend_test(
         g_1, g_2 = take(gs, i1), take(gs, i2)
         a11 = take(gg, 2 * i1) - g_1 * g_1 * mean_s
         a22 = take(gg, 2 * i2) - g_2 * g_2 * mean_s
-        a12 = np.exp(-0.25 * ((i1 - i2) * BLEND_STEP) ** 2) * take(gg, i1 + i2) - g_1 * g_2 * mean_s
+        a12 = overlap * take(gg, i1 + i2) - g_1 * g_2 * mean_s
         b_1 = take(gy, i1) - g_1 * mean_y
         b_2 = take(gy, i2) - g_2 * mean_y
         det = a11 * a22 - a12 * a12
@@ -651,7 +662,7 @@ def blend_test(
         ssr = base[:, None] - (amp1 * b_1 + amp2 * b_2)
         return np.where(ok & (amp1 > 0) & (amp2 > 0), ssr, np.inf), amp1, amp2
 
-    ssr2_all, amp1, amp2 = two_spots(_PAIR_I1, _PAIR_I2)
+    ssr2_all, amp1, amp2 = two_spots(_PAIR_I1, _PAIR_I2, _PAIR_OVERLAP)
     best = np.argmin(ssr2_all, axis=1)
     rows = np.arange(n)
     ssr2 = ssr2_all[rows, best]
@@ -661,16 +672,17 @@ def blend_test(
     evidence = np.where(np.isfinite(evidence), evidence, -np.inf)
     b1i, b2i = _PAIR_I1[best], _PAIR_I2[best]
     interior = _PAIR_INTERIOR[best] & np.isfinite(ssr2)
-    # parabolas through the best and its neighbours, moving one spot at a time (a neighbour
-    # off the grid or with the spots' order swapped counts as no hypothesis)
-    last = len(_BLEND_T) - 1
-    one = np.ones(n, dtype=np.intp)
-    n1 = np.column_stack([np.maximum(b1i - 1, 0), np.minimum(b1i + 1, last), b2i, b2i])
-    n2 = np.column_stack([b1i, b1i, np.maximum(b2i - 1, 0), np.minimum(b2i + 1, last)])
-    near, _, _ = two_spots(n1, n2)
-    near = np.where(n1 > n2, near, np.inf)
-    t1 = _BLEND_T[b1i] + _vertex(near[:, 0], ssr2, near[:, 1]) * BLEND_STEP * one
-    t2 = _BLEND_T[b2i] + _vertex(near[:, 2], ssr2, near[:, 3]) * BLEND_STEP
+    t1, t2 = _BLEND_T[b1i], _BLEND_T[b2i]
+    if np.any(interior & (evidence > 0)):
+        # parabolas through the best and its neighbours, moving one spot at a time (a
+        # neighbour off the grid or with the spots' order swapped is no hypothesis)
+        last = len(_BLEND_T) - 1
+        n1 = np.column_stack([np.maximum(b1i - 1, 0), np.minimum(b1i + 1, last), b2i, b2i])
+        n2 = np.column_stack([b1i, b1i, np.maximum(b2i - 1, 0), np.minimum(b2i + 1, last)])
+        near, _, _ = two_spots(n1, n2, np.exp(-0.25 * ((n1 - n2) * BLEND_STEP) ** 2))
+        near = np.where(n1 > n2, near, np.inf)
+        t1 = t1 + _vertex(near[:, 0], ssr2, near[:, 1]) * BLEND_STEP
+        t2 = t2 + _vertex(near[:, 2], ssr2, near[:, 3]) * BLEND_STEP
     ax = axis[:, None, :]
     centres = np.column_stack([r, c])[:, None, :] + (
         scale * np.stack([t1, t2], axis=1)[:, :, None] * ax
