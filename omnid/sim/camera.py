@@ -27,6 +27,7 @@ model of ``render.py``).
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -116,8 +117,9 @@ class SceneTexture:
     floor extent, sampled at (x + 0.7·h, y − 0.7·h) so that box sides are textured too.
 
     The image is a function of the model's texture settings, the extent and the seed: it is
-    built once per process for each such set (read-only, shared by every simulator that asks
-    for the same one; a texture takes ~0.5 s and 20 MB)."""
+    built when first sampled (a run without rendered frames never needs it), once per process
+    for each such set (read-only, shared by every simulator that asks for the same one; a
+    texture takes ~0.5 s and 20 MB)."""
 
     def __init__(
         self,
@@ -138,7 +140,12 @@ class SceneTexture:
             model.grout_mm,
             model.grout_gray,
         )
-        self.image = _texture_image(look, tuple(extent_mm), int(seed), texel_mm, floor_px_mm)
+        self._key = (look, tuple(extent_mm), int(seed), texel_mm, floor_px_mm)
+
+    @property
+    def image(self) -> NDArray[np.float32]:
+        """The texture image (rows: y, columns: x, one texel per ``texel_mm``), gray levels."""
+        return _texture_image(*self._key)
 
     def texel_coordinates(
         self, x_mm: NDArray[np.float64], y_mm: NDArray[np.float64], h_mm: NDArray[np.float64]
@@ -178,8 +185,13 @@ def _texture_image(
         )
         return np.asarray(big[:rows, :cols], dtype=np.float32)
 
-    img = level + contrast * field(245.0)
-    img = img + detail * field(30.0)
+    # in place (20 MB arrays): the same sums as level + contrast·coarse + detail·fine
+    img = field(245.0)
+    img *= np.float32(contrast)
+    img += np.float32(level)
+    fine = field(30.0)
+    fine *= np.float32(detail)
+    img += fine
     if texture == "tiles":
         xs = x0 + texel_mm * np.arange(cols, dtype=np.float64)[None, :]
         ys = y0 + texel_mm * np.arange(rows, dtype=np.float64)[:, None]
@@ -194,7 +206,7 @@ def _texture_image(
     # pre-filter to a floor pixel's footprint (the mirror images the floor at a uniform
     # ~10 mm per px): sampling then does not alias
     sigma = 0.4 * floor_px_mm / texel_mm
-    image = np.asarray(cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma), dtype=np.float32)
+    image = np.asarray(cv2.GaussianBlur(img, (0, 0), sigma), dtype=np.float32)
     image.flags.writeable = False
     return image
 
@@ -212,16 +224,9 @@ class _CameraRays:
         self.shape = (rows, cols)
         self.grid_shape = (rows // grid_px, cols // grid_px)
         self.disk = disk_mask(cam)
-        in_rows = np.flatnonzero(self.disk.any(axis=1))
-        in_cols = np.flatnonzero(self.disk.any(axis=0))
-        if len(in_rows) == 0:  # a disk outside the image: one pixel stands for it
-            in_rows = in_cols = np.zeros(1, dtype=np.int64)
-        #: (rows, cols) slices of the disk's bounding box: outside it every pixel is housing
-        self.box = (
-            slice(int(in_rows[0]), int(in_rows[-1]) + 1),
-            slice(int(in_cols[0]), int(in_cols[-1]) + 1),
-        )
-        self.disk_in_box = np.ascontiguousarray(self.disk[self.box])
+        #: bands of rows covering the disk, each (rows, cols, the disk in them): only these
+        #: are sampled, everything else in the image is housing whatever the pose
+        self.bands = _disk_bands(self.disk, _DISK_BANDS)
         self.nodes = np.flatnonzero(_nodes_used(self.disk, grid_px, self.grid_shape).ravel())
         # node j stands for pixel j·step + (step − 1)/2: where cv2.resize puts it
         half = (grid_px - 1) / 2
@@ -316,6 +321,27 @@ class _CameraRays:
                 _, zout2 = _slab(ay, by, y0, y1, H, zout, nonzero)
                 z = np.where(inside, np.clip(zout2, H, H + depth), z)
         return ax + z * bx, ay + z * by, H - z
+
+
+#: Bands of rows the disk is cut into for sampling (fewer pixels outside it are sampled).
+_DISK_BANDS = 12
+
+
+def _disk_bands(
+    disk: NDArray[np.bool_], count: int
+) -> tuple[tuple[slice, slice, NDArray[np.bool_]], ...]:
+    """``count`` bands of rows covering ``disk``: (rows, the disk's columns in them, the disk
+    within that box)."""
+    rows = np.flatnonzero(disk.any(axis=1))
+    if len(rows) == 0:
+        return ()
+    edges = np.linspace(rows[0], rows[-1] + 1, min(count, len(rows)) + 1).astype(int)
+    out = []
+    for top, bottom in itertools.pairwise(edges):
+        cols = np.flatnonzero(disk[top:bottom].any(axis=0))
+        box = (slice(int(top), int(bottom)), slice(int(cols[0]), int(cols[-1]) + 1))
+        out.append((*box, np.ascontiguousarray(disk[box])))
+    return tuple(out)
 
 
 @functools.lru_cache(maxsize=8)
@@ -472,13 +498,15 @@ class SimCamera:
             out = cv2.resize(rays.on_grid(a), (cols, rows), interpolation=cv2.INTER_LINEAR)
             return np.asarray(out, dtype=np.float32)
 
-        box = rays.box  # only the disk's bounding box is sampled: the rest is housing
-        gray = self.texture.sample_texels(full(u)[box], full(v)[box])
-        if textured == "floor":
-            on_box = (h > 1.0).astype(np.float32)  # above the floor: a box
-            gray = np.where(full(on_box)[box] > 0.5, np.float32(self.model.texture_level), gray)
+        map_u, map_v = full(u), full(v)
+        on_box = full((h > 1.0).astype(np.float32)) if textured == "floor" else None
         out = np.full((rows, cols), OUTSIDE_DISK_LEVEL, dtype=np.float32)
-        np.copyto(out[box], gray, where=rays.disk_in_box)
+        for band in rays.bands:  # only the disk is sampled: the rest is housing
+            box = band[:2]
+            gray = self.texture.sample_texels(map_u[box], map_v[box])
+            if on_box is not None:  # above the floor: a box, uniform gray
+                gray = np.where(on_box[box] > 0.5, np.float32(self.model.texture_level), gray)
+            np.copyto(out[box], gray, where=band[2])
         return out
 
     def render(self, frame: SimFrame, hits: LaserHits) -> tuple[Image, Image]:
