@@ -735,6 +735,8 @@ def _detect_best(
     # smoothing resolves (a doubled beam) are one maximum — split where two spots explain the
     # light better than any one spot (:func:`_split_blends`).
     pair = fixed = np.zeros(len(rows), dtype=bool)
+    n_blobs = len(rows)
+    blob_r, blob_c, blob_rows, blob_cols = r, c, rows, cols  # (as one dot: the pull's view)
     if split_blends:
         rows, cols, centre, r, c, clipped, pair, fixed = _split_blends(
             d, saturated, sm, rows, cols, centre, r, c, clipped, sigma, p.best_relative_peak, noise
@@ -770,8 +772,27 @@ def _detect_best(
     if sigma > _FIT_ALL_FROM_PX:
         fit = np.ones(len(r), dtype=bool)
     else:
-        pull_r, pull_c, fit = _neighbour_pull(r, c, sm[rows, cols], filtered_var, (h, w))
-        fit |= pair  # (a split blend's two spots: fitted jointly, from the test's centres)
+        if pair.any():
+            # The neighbours' pulls as without the split (a blob's two spots pull a
+            # neighbour as the one blob does, to first order); a split blend's two spots are
+            # fitted jointly against the light of their neighbours held where the pull puts
+            # them (below), not refitted with them.
+            blob = np.flatnonzero(pair[:n_blobs])
+            pr_, pc_ = r[:n_blobs].copy(), c[:n_blobs].copy()
+            tr_, tc_ = rows[:n_blobs].copy(), cols[:n_blobs].copy()
+            pr_[blob], pc_[blob] = blob_r[blob], blob_c[blob]
+            tr_[blob], tc_[blob] = blob_rows[blob], blob_cols[blob]
+            pull_r, pull_c, fit_blobs = _neighbour_pull(
+                pr_, pc_, sm[tr_, tc_], filtered_var, (h, w)
+            )
+            extra = len(r) - n_blobs
+            pull_r = np.concatenate([pull_r, np.zeros(extra)])
+            pull_c = np.concatenate([pull_c, np.zeros(extra)])
+            fit = np.concatenate([fit_blobs, np.ones(extra, dtype=bool)])
+            fit[blob] = True
+            pull_r[pair], pull_c[pair] = 0.0, 0.0
+        else:
+            pull_r, pull_c, fit = _neighbour_pull(r, c, sm[rows, cols], filtered_var, (h, w))
         r[~fit] -= pull_r[~fit]
         c[~fit] -= pull_c[~fit]
     if saturated is not None and clipped.any() and sigma > _FIT_ALL_FROM_PX:
@@ -783,11 +804,19 @@ def _detect_best(
         r[k[wide]], c[k[wide]] = rk[wide], ck[wide]
     if fit.any():
         k = np.flatnonzero(fit)
+        free = None
+        if pair.any() and not fit.all():
+            # (a split pair's neighbours that the pull resolved: held, their light taken out)
+            held_px = 2.0 * spotfit.window_half_px(sigma) * math.sqrt(2.0)
+            dr_, dc_ = r[pair][:, None] - r[None, :], c[pair][:, None] - c[None, :]
+            held = ((dr_ * dr_ + dc_ * dc_) <= held_px * held_px).any(axis=0) & ~fit
+            k = np.flatnonzero(fit | held)
+            free = fit[k]
         peak = centre[k] * spread2 / (sigma * sigma)  # the spot's own peak from the smoothed
         # Fitted on the subtracted image: near large, dense spots the local background
         # (a min filter) holds their light; each fit has its own plane for what is left.
         fr, fc, _, fs = spotfit.fit_spots(
-            sub, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k])
+            sub, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k]), free=free
         )
         # A fit that wandered off, or whose size ran to its bound (no spot of the image's
         # size there: a neighbour's light or a shape the Gaussian does not fit), keeps its start.

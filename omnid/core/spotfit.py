@@ -193,12 +193,15 @@ def fit_spots(
     peak: NDArray,
     start: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     iterations: int | None = None,
+    free: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Fit every dot of a background-free ``image`` at once (see the module doc).
 
     ``rows``, ``cols``: each dot's peak pixel; ``start``: optional sub-pixel starting centres;
     ``sigma_px``: the starting spot sigma (it also sets the window); ``peak``: starting peak
-    values, gray levels; ``saturated``: pixels whose value is only a lower bound (or None):
+    values, gray levels; ``free``: which dots are fitted (default all): the others are held
+    at their start (round spots of ``sigma_px``), their light only taken out of the fitted
+    dots' windows; ``saturated``: pixels whose value is only a lower bound (or None):
     each is replaced by the larger of its value and the current model there — the dot's,
     its plane's and its neighbours' light: the censored-data update —, so a clipped top carries
     the information it has and no more. Returns, per dot,
@@ -243,17 +246,23 @@ def fit_spots(
     # Every neighbour whose light (to ~3 σ) reaches a dot's window is taken out of it.
     reach = 2 * h
     pair_i, pair_j = near_pairs(cr, cc, reach)
-    if len(pair_i) == 0 or sigma_px <= SEQUENTIAL_FROM_PX:
-        groups = [np.arange(n)]
+    sequential = len(pair_i) > 0 and sigma_px > SEQUENTIAL_FROM_PX
+    if not sequential:
+        groups = [np.arange(n) if free is None else np.flatnonzero(free)]
+        if free is not None:
+            held = free[pair_i]  # (only the fitted dots' windows are updated)
+            pair_i, pair_j = pair_i.compress(held), pair_j.compress(held)
     else:
         colour = (np.floor(cr / reach).astype(np.int64) % 2) * 2
         colour += np.floor(cc / reach).astype(np.int64) % 2
+        if free is not None:
+            colour[~free] = -1
         groups = [g for g in (np.flatnonzero(colour == k) for k in range(4)) if len(g)]
     if iterations is None:
-        iterations = ITERATIONS if len(groups) > 1 else JACOBI_ITERATIONS
+        iterations = ITERATIONS if sequential and len(groups) > 1 else JACOBI_ITERATIONS
     for _ in range(iterations):
         for g in groups:
-            if len(groups) == 1:
+            if not sequential:
                 _update(st, g, pair_i, pair_j)
             else:
                 sel = np.isin(pair_i, g)

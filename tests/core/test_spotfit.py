@@ -71,6 +71,14 @@ def test_close_neighbours_are_fitted_jointly() -> None:
     assert errs[0] < 0.2 and errs[1] < 0.03 and errs[2] < 0.005
     _, c1, _, _ = fit_spots(img, None, rows[1:], cols[1:], 2.5, np.array([60.0]))
     assert abs(c1[0] - truth[1, 1]) > 0.2
+    # the brighter one held at its centre (its light only taken out): the fainter converges
+    held = (truth[:, 0], truth[:, 1])
+    free = np.array([False, True])
+    r, c, _, _ = fit_spots(
+        img, None, rows, cols, 2.5, np.array([100.0, 60.0]), start=held, iterations=8, free=free
+    )
+    assert (r[0], c[0]) == (truth[0, 0], truth[0, 1])
+    assert np.abs(np.array([r[1], c[1]]) - truth[1]).max() < 0.03
 
 
 @pytest.mark.parametrize(
