@@ -714,6 +714,11 @@ def _fit_point_to_lines(
     return inv @ b, inv
 
 
+#: Two readings of the laser's source this near (mm) are one: the vote's runner-up is sought
+#: beyond it, and a runner-up refined back within it of the winner is dropped.
+_DISTINCT_SOURCE_MM = 25.0
+
+
 def source_candidates(
     rig: StereoRig,
     floor_mm: NDArray[np.float64],
@@ -782,7 +787,7 @@ def source_candidates(
     # second point many lines also meet is another reading of the same dots (a pairing shifted
     # by one beam on a plane gives another plane, and another source, that fit as well).
     peak = float(sm[kz, ky, kx])
-    rad = 5
+    rad = math.ceil(_DISTINCT_SOURCE_MM / cell)
     rest = sm.copy()
     rest[
         max(kz - rad, 0) : kz + rad + 1,
@@ -817,7 +822,7 @@ def source_candidates(
                 )
             continue
         o, sigma_o, line_rms, n_in = refined
-        if any(np.linalg.norm(o - f[0]) <= 25.0 for f in found):
+        if any(np.linalg.norm(o - f[0]) <= _DISTINCT_SOURCE_MM for f in found):
             continue  # (refined back to a point already found)
         info = {
             "source_dots": float(n_in),
