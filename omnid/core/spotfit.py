@@ -108,7 +108,7 @@ def window_half_px(sigma_px: float) -> int:
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
 
 
-#: :func:`near_pairs` without ``sort`` tests all pairs of up to this many points.
+#: :func:`near_pairs` tests all pairs of up to this many points.
 _ALL_PAIRS_UP_TO = 64
 
 
@@ -123,7 +123,8 @@ def near_pairs(
     adjacent cells, so each point's candidates are the points of its 3x3 cells, found by
     a table of the points sorted by cell — a few vectorised passes, about 2.5x faster
     than a k-d tree's pairs for the ~10³ dots of an image. Up to :data:`_ALL_PAIRS_UP_TO`
-    points without ``sort``: all n² pairs tested at once (the grid's passes cost more).
+    points: all n² pairs tested at once (the grid's passes cost more), the js of each i in
+    ascending order.
     """
     empty = np.zeros(0, np.intp), np.zeros(0, np.intp)
     n = len(rows)
@@ -131,7 +132,7 @@ def near_pairs(
         return empty
     r = np.asarray(rows, dtype=np.float64)
     c = np.asarray(cols, dtype=np.float64)
-    if not sort and n <= _ALL_PAIRS_UP_TO:
+    if n <= _ALL_PAIRS_UP_TO:
         close = (np.abs(r[:, None] - r) <= reach) & (np.abs(c[:, None] - c) <= reach)
         np.fill_diagonal(close, False)
         i, j = np.nonzero(close)
@@ -218,16 +219,27 @@ def fit_spots(
     off = np.arange(-h, h + 1, dtype=np.float64)
     win_r = rows[:, None] + off[None, :]  # the window's pixel rows (n, size)
     win_c = cols[:, None] + off[None, :]
-    rr = clip(win_r.astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
-    cc_ = clip(win_c.astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
-    inside = ((win_r >= 0) & (win_r < image.shape[0]))[:, :, None]
-    inside = inside & ((win_c >= 0) & (win_c < image.shape[1]))[:, None, :]
+    # (the held dots' windows are never read: only the fitted dots' pixels are gathered)
+    own = slice(None) if free is None else np.flatnonzero(free)
+    rr = clip(win_r[own].astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
+    cc_ = clip(win_c[own].astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
+    inside = ((win_r[own] >= 0) & (win_r[own] < image.shape[0]))[:, :, None]
+    inside = inside & ((win_c[own] >= 0) & (win_c[own] < image.shape[1]))[:, None, :]
     win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
     sat_all: NDArray[np.bool_] | None = None
     if saturated is not None:
         sat_all = saturated[rr, cc_] & inside
         if not sat_all.any():
             sat_all = None
+    if free is not None:
+        size = len(off)
+        win_all = np.zeros((n, size, size))
+        win_all[own] = win
+        win = win_all
+        if sat_all is not None:
+            sat_full = np.zeros((n, size, size), dtype=bool)
+            sat_full[own] = sat_all
+            sat_all = sat_full
     if start is None:
         cr, cc = rows.astype(np.float64), cols.astype(np.float64)
     else:
