@@ -1044,6 +1044,8 @@ def _split_blends(
         d, r[ask], c[ask], axis, sigma, noise, valid, (a, r[j], c[j], peak[j])
     )
     two = (test.evidence > 0) & test.interior & (test.separation >= _SPLIT_MIN_SIGMAS)
+    if not two.any():
+        return rows, cols, centre, r, c, clipped, none, none
     cen = test.centres
     ir = np.rint(cen[:, :, 0]).astype(np.intp)
     ic = np.rint(cen[:, :, 1]).astype(np.intp)
