@@ -669,6 +669,7 @@ def _detect_best(
     rows, cols = _local_maxima(sm, threshold, 3, (r0, r1, c0, c1), (h_img, w_img))
     centre = sm[rows, cols]
     r, c, mean_var, max_var, ok = _log_quadratic(sm, rows, cols)
+    cand = np.arange(len(rows))  # (which of these the filters below keep)
     # A top within 1 px of a clipped pixel of the base frame is flattened by the sensor, by
     # the laser if the scene itself (the mask frame) was not clipped there.
     saturated = _saturated(base, p.bgr_weights, (r0, r1, c0, c1))
@@ -704,6 +705,7 @@ def _detect_best(
             compact[flat[far >= _FAR_CONTRAST]] = True
         ok &= compact
     rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
+    cand = cand[ok]
     if p.best_relative_peak > 0 and len(rows):
         rad = max(p.best_relative_radius_px, round(1.6 * math.sqrt(spread2)))
         src, off = sm, rad
@@ -721,6 +723,7 @@ def _detect_best(
         near = _windows(src, rows[ask] + (rad - off), cols[ask] + (rad - off), rad, disk=True)
         ok[ask] = centre[ask] >= p.best_relative_peak * near.max(axis=0)
         rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
+        cand = cand[ok]
     # Wide or clipped tops can hold several maxima of the 1 px smoothing: one spot. (The
     # maxima on a clipped top are all next to its clipped pixels.)
     some = np.arange(len(rows)) if sigma > _MATCHED_FROM_PX else np.flatnonzero(clipped)
@@ -729,6 +732,7 @@ def _detect_best(
         ok = np.ones(len(rows), dtype=bool)
         ok[some] = _one_spot(sm, r[some], c[some], centre[some], reach)
         rows, cols, centre, r, c, clipped = _take(ok, rows, cols, centre, r, c, clipped)
+        cand = cand[ok]
     if len(rows) == 0:
         return _empty()
     # Experimental (not the default; docs/benchmarks/rigs.md): two beams closer than the
@@ -739,7 +743,14 @@ def _detect_best(
     blob_r, blob_c, blob_rows, blob_cols = r, c, rows, cols  # (as one dot: the pull's view)
     if split_blends:
         rows, cols, centre, r, c, clipped, pair, fixed = _split_blends(
-            d, saturated, sm, rows, cols, centre, r, c, clipped, sigma, p.best_relative_peak, noise
+            d,
+            saturated,
+            sm,
+            (rows, cols, centre, r, c, clipped),
+            (mean_var[cand], max_var[cand]),
+            sigma,
+            p.best_relative_peak,
+            noise,
         )
     fixed_r, fixed_c = r[fixed], c[fixed]
     pair_r, pair_c = r[pair], c[pair]
@@ -955,12 +966,8 @@ def _split_blends(
     d: NDArray[np.float32],
     saturated: NDArray[np.bool_] | None,
     sm: NDArray,
-    rows: NDArray[np.intp],
-    cols: NDArray[np.intp],
-    centre: NDArray,
-    r: NDArray[np.float64],
-    c: NDArray[np.float64],
-    clipped: NDArray[np.bool_],
+    candidates: _Candidates,
+    curvature: tuple[NDArray[np.float64], NDArray[np.float64]],
     sigma: float,
     relative_peak: float,
     noise: float,
@@ -994,7 +1001,12 @@ def _split_blends(
     any smoothing: no capture resolves them the same way twice), and both are dots by the
     detector's own rule: the dimmer's smoothed peak ≥ ``relative_peak`` of the brighter's. A
     blob that two spots explain but whose dimmer one is not a dot (a ghost reflection, a
-    halo's grain) keeps one dot, at the brighter spot's centre."""
+    halo's grain) keeps one dot, at the brighter spot's centre.
+
+    ``candidates``: (rows, cols, smoothed peak, sub-pixel row, col, clipped) as
+    :func:`_take` keeps them; ``curvature``: their (mean, larger principal) variances from
+    :func:`_log_quadratic` of ``sm`` (every candidate's quadratic a maximum)."""
+    rows, cols, centre, r, c, clipped = candidates
     n = len(rows)
     none = np.zeros(n, dtype=bool)
     if n == 0:
@@ -1007,9 +1019,9 @@ def _split_blends(
         s_key * s_key + 1.0 + 1.0 / 12.0, _SPLIT_MIN_SIGMAS * s_key, relative_peak
     )
     # (the raw curvatures first: a neighbour only ever adds elongation to them)
-    _, _, mean_var, max_var, ok = _log_quadratic(sm, rows, cols)
+    mean_var, max_var = curvature
     min_var = 1.0 / np.maximum(2.0 / mean_var - 1.0 / max_var, 1e-12)
-    ask = np.flatnonzero(ok & (max_var >= elongation * min_var))
+    ask = np.flatnonzero(max_var >= elongation * min_var)
     if len(ask) == 0:
         return rows, cols, centre, r, c, clipped, none, none
     # the neighbours whose light reaches a candidate's test window (and its 3x3 curvature)

@@ -108,7 +108,7 @@ def window_half_px(sigma_px: float) -> int:
     return int(min(max(math.ceil(WINDOW_PER_SIGMA * sigma_px), MIN_HALF_PX), MAX_HALF_PX))
 
 
-#: :func:`near_pairs` without ``sort`` tests all pairs of up to this many points.
+#: :func:`near_pairs` tests all pairs of up to this many points.
 _ALL_PAIRS_UP_TO = 64
 
 
@@ -123,7 +123,8 @@ def near_pairs(
     adjacent cells, so each point's candidates are the points of its 3x3 cells, found by
     a table of the points sorted by cell — a few vectorised passes, about 2.5x faster
     than a k-d tree's pairs for the ~10³ dots of an image. Up to :data:`_ALL_PAIRS_UP_TO`
-    points without ``sort``: all n² pairs tested at once (the grid's passes cost more).
+    points: all n² pairs tested at once (the grid's passes cost more), the js of each i in
+    ascending order.
     """
     empty = np.zeros(0, np.intp), np.zeros(0, np.intp)
     n = len(rows)
@@ -131,7 +132,7 @@ def near_pairs(
         return empty
     r = np.asarray(rows, dtype=np.float64)
     c = np.asarray(cols, dtype=np.float64)
-    if not sort and n <= _ALL_PAIRS_UP_TO:
+    if n <= _ALL_PAIRS_UP_TO:
         close = (np.abs(r[:, None] - r) <= reach) & (np.abs(c[:, None] - c) <= reach)
         np.fill_diagonal(close, False)
         i, j = np.nonzero(close)
@@ -218,16 +219,27 @@ def fit_spots(
     off = np.arange(-h, h + 1, dtype=np.float64)
     win_r = rows[:, None] + off[None, :]  # the window's pixel rows (n, size)
     win_c = cols[:, None] + off[None, :]
-    rr = clip(win_r.astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
-    cc_ = clip(win_c.astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
-    inside = ((win_r >= 0) & (win_r < image.shape[0]))[:, :, None]
-    inside = inside & ((win_c >= 0) & (win_c < image.shape[1]))[:, None, :]
+    # (the held dots' windows are never read: only the fitted dots' pixels are gathered)
+    own = slice(None) if free is None else np.flatnonzero(free)
+    rr = clip(win_r[own].astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
+    cc_ = clip(win_c[own].astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
+    inside = ((win_r[own] >= 0) & (win_r[own] < image.shape[0]))[:, :, None]
+    inside = inside & ((win_c[own] >= 0) & (win_c[own] < image.shape[1]))[:, None, :]
     win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
     sat_all: NDArray[np.bool_] | None = None
     if saturated is not None:
         sat_all = saturated[rr, cc_] & inside
         if not sat_all.any():
             sat_all = None
+    if free is not None:
+        size = len(off)
+        win_all = np.zeros((n, size, size))
+        win_all[own] = win
+        win = win_all
+        if sat_all is not None:
+            sat_full = np.zeros((n, size, size), dtype=bool)
+            sat_full[own] = sat_all
+            sat_all = sat_full
     if start is None:
         cr, cc = rows.astype(np.float64), cols.astype(np.float64)
     else:
@@ -595,18 +607,7 @@ def blend_test(
     m = y.shape[1]
     scale = math.sqrt(sigma_px * sigma_px + 1.0 / 12.0)
     if neighbours is not None and len(neighbours[0]):
-        ki, o_r, o_c, o_peak = neighbours
-        qr = pr[ki] - o_r[:, None]
-        qc = pc[ki] - o_c[:, None]
-        light = o_peak[:, None] * np.exp((qr * qr + qc * qc) * (-0.5 / (scale * scale)))
-        y -= np.asarray(
-            np.bincount(
-                (ki[:, None] * m + np.arange(m)[None, :]).ravel(),
-                weights=light.ravel(),
-                minlength=n * m,
-            ),
-            dtype=np.float64,
-        ).reshape(n, m)
+        y -= _neighbours_in_windows(pr, pc, len(off), scale, neighbours)
     er, ec = axis[:, 0:1], axis[:, 1:2]
     dr, dc = pr - r[:, None], pc - c[:, None]
     along = (dr * er + dc * ec) / scale
@@ -647,6 +648,9 @@ def blend_test(
     gs, gy, gg = light[:n, ks:], light[n:, ks:], square[:, ks:]
     mean_s, mean_y = (1.0 / s0)[:, None], (sy / s0)[:, None]
     each = np.arange(n)[:, None]
+    # each position's own terms, once (the hypotheses pair them)
+    a_own = gg[:, ::2] - gs * gs * mean_s  # Σ w g_t² − (Σ w g_t)²/S0
+    b_own = gy - gs * mean_y
 
     def two_spots(
         i1: NDArray[np.intp], i2: NDArray[np.intp], overlap: NDArray[np.float64]
@@ -657,12 +661,9 @@ def blend_test(
         def take(a: NDArray[np.float64], i: NDArray[np.intp]) -> NDArray[np.float64]:
             return a[:, i] if i.ndim == 1 else a[each, i]
 
-        g_1, g_2 = take(gs, i1), take(gs, i2)
-        a11 = take(gg, 2 * i1) - g_1 * g_1 * mean_s
-        a22 = take(gg, 2 * i2) - g_2 * g_2 * mean_s
-        a12 = overlap * take(gg, i1 + i2) - g_1 * g_2 * mean_s
-        b_1 = take(gy, i1) - g_1 * mean_y
-        b_2 = take(gy, i2) - g_2 * mean_y
+        a11, a22 = take(a_own, i1), take(a_own, i2)
+        a12 = overlap * take(gg, i1 + i2) - take(gs, i1) * take(gs, i2) * mean_s
+        b_1, b_2 = take(b_own, i1), take(b_own, i2)
         det = a11 * a22 - a12 * a12
         ok = det > 1e-9 * np.maximum(a11 * a22, 1e-300)
         det = np.where(ok, det, 1.0)
@@ -703,6 +704,39 @@ def blend_test(
         (t1 - t2) * scale / sigma_px,
         interior,
     )
+
+
+def _neighbours_in_windows(
+    pr: NDArray[np.intp],
+    pc: NDArray[np.intp],
+    size: int,
+    scale: float,
+    neighbours: tuple[NDArray[np.intp], NDArray, NDArray, NDArray],
+) -> NDArray[np.float64]:
+    """(n, size²): the light of round spots (pixel-sampled sigma ``scale``) of the
+    ``neighbours`` (the blob's index, row, col, peak) in the blobs' square windows, whose pixels
+    are ``pr``, ``pc`` (n, size²; row-major). A round spot is the outer product of a row and a
+    column profile, so each neighbour costs 2·size exponentials, and each window's sum over its
+    neighbours is one small matrix product (the neighbours padded to the most any blob has)."""
+    ki, o_r, o_c, o_peak = neighbours
+    n = len(pr)
+    rows_px = pr[:, ::size]  # (n, size): the window's rows, then its columns
+    cols_px = pc[:, :size]
+    inv = -0.5 / (scale * scale)
+    qr = rows_px[ki] - o_r[:, None]
+    qc = cols_px[ki] - o_c[:, None]
+    prof_r = o_peak[:, None] * np.exp(qr * qr * inv)
+    prof_c = np.exp(qc * qc * inv)
+    if len(ki) > 1 and bool(np.any(ki[1:] < ki[:-1])):
+        order = np.argsort(ki, kind="stable")
+        ki, prof_r, prof_c = ki[order], prof_r[order], prof_c[order]
+    count = np.bincount(ki, minlength=n)
+    slot = np.arange(len(ki)) - (np.cumsum(count) - count)[ki]
+    pad_r = np.zeros((n, int(count.max()), size))
+    pad_c = np.zeros_like(pad_r)
+    pad_r[ki, slot] = prof_r
+    pad_c[ki, slot] = prof_c
+    return np.matmul(np.swapaxes(pad_r, 1, 2), pad_c).reshape(n, size * size)
 
 
 def _vertex(
