@@ -20,8 +20,8 @@ Faults never reach the control loop as a stall: an exception inside ``perceive``
 :class:`PerceptionFailed`; a child that dies (EOF) or does not answer within ``timeout_s`` is
 killed and a fresh one is started for the next request; the caller sees
 :class:`PerceptionFailed` at once and the daemon's perception simply grows stale (no forward
-motion). The child runs at lower priority (``nice``) and exits when the daemon's end of the pipe
-closes.
+motion). The child runs at lower priority (``nice``), with numpy's OpenBLAS on one thread
+(:func:`limit_blas_threads`), and exits when the daemon's end of the pipe closes.
 """
 
 from __future__ import annotations
@@ -29,14 +29,17 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import ctypes
 import logging
 import multiprocessing
 import multiprocessing.connection
 import os
 import pickle
+import re
 import signal
 import struct
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -168,6 +171,52 @@ def decode_request(data: bytes) -> StereoCapture:
     return job_capture(base, masks, [None] * len(masks), t_s=t_s)
 
 
+# OpenBLAS as numpy's wheels bundle it (symbols prefixed and suffixed) or as a system library.
+_OPENBLAS_PREFIXES = ("scipy_openblas", "openblas")
+_OPENBLAS_SUFFIXES = ("64_", "")
+
+
+def _openblas_call(what: str, *args: int) -> list[int]:
+    """Call ``openblas_<what>`` in every OpenBLAS this process has loaded (Linux: read from
+    /proc/self/maps); the return values, empty where there is none."""
+    try:
+        maps = Path("/proc/self/maps").read_text()
+    except OSError:
+        return []
+    out = []
+    for lib in sorted(set(re.findall(r"(/\S*openblas\S*\.so\S*)", maps))):
+        try:
+            dll = ctypes.CDLL(lib)
+        except OSError:
+            continue
+        for prefix in _OPENBLAS_PREFIXES:
+            for suffix in _OPENBLAS_SUFFIXES:
+                fn = getattr(dll, f"{prefix}_{what}{suffix}", None)
+                if fn is not None:
+                    out.append(int(fn(*args) or 0))
+                    break
+            else:
+                continue
+            break
+    return out
+
+
+def blas_threads() -> list[int]:
+    """The thread count of each OpenBLAS loaded in this process."""
+    return _openblas_call("get_num_threads")
+
+
+def limit_blas_threads(n: int) -> None:
+    """Let numpy's OpenBLAS use at most ``n`` threads from now on.
+
+    OpenBLAS starts one thread per core and its idle threads spin: in the perception child a
+    matrix product of a few hundred rows then ran on threads competing with the control loop
+    for the chair computer's cores (measured ~20–25 ms instead of ~0.3 ms at load 6).
+    Perception's products are small; one thread is faster and leaves the cores to the loop.
+    """
+    _openblas_call("set_num_threads", n)
+
+
 def _worker_main(
     conn: multiprocessing.connection.Connection,
     fn: PerceiveFn,
@@ -180,6 +229,7 @@ def _worker_main(
     """The child: answer requests until the parent's end of the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon handles Ctrl-C and stops us
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    limit_blas_threads(1)
     if nice:
         with contextlib.suppress(OSError):
             os.nice(nice)

@@ -146,3 +146,17 @@ def faulty_perceive(capture, calib, method, settings) -> PointCloud:
         classes=np.zeros(1, np.uint8),
         floor_depth_mm=1100.0,
     )
+
+
+def blas_threads_perceive(capture, calib, method, settings) -> PointCloud:
+    """A perceive stand-in that reports, as its one point's x, the most threads any OpenBLAS
+    in the worker process may use (0: none loaded)."""
+    from omnid.daemon.perception_worker import blas_threads
+
+    return PointCloud(
+        xyz=np.array([[float(max(blas_threads(), default=0)), 0.0, 1100.0]]),
+        cov=np.zeros((1, 3, 3)),
+        pixels=np.zeros((1, 4)),
+        classes=np.zeros(1, np.uint8),
+        floor_depth_mm=1100.0,
+    )

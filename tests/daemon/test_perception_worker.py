@@ -8,12 +8,13 @@ import time
 
 import numpy as np
 import pytest
-from daemon_helpers import faulty_perceive
+from daemon_helpers import blas_threads_perceive, faulty_perceive
 
 from omnid.core.types import StereoCapture
 from omnid.daemon.perception_worker import (
     PerceptionFailed,
     PerceptionWorker,
+    blas_threads,
     decode_request,
     encode_request,
 )
@@ -80,3 +81,20 @@ def test_worker_survives_exception_crash_and_hang_without_stalling_the_loop():
     assert w.restarts == 2 and w.failures == 3
     # the event loop kept ticking throughout (spawning a child may cost a few ms)
     assert worst_gap < 0.1, worst_gap
+
+
+def test_the_worker_runs_numpys_blas_on_one_thread():
+    """OpenBLAS would start a spinning thread per core in the child, beside the control loop."""
+    if not blas_threads():
+        pytest.skip("numpy here has no OpenBLAS")
+
+    async def main() -> float:
+        w = PerceptionWorker(None, timeout_s=5.0, nice=0, fn=blas_threads_perceive)
+        await w.start()
+        try:
+            cloud = await w.perceive(capture(0, 0))
+        finally:
+            await w.close()
+        return float(cloud.xyz[0, 0])
+
+    assert asyncio.run(main()) == 1.0

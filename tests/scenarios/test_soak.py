@@ -32,9 +32,11 @@ may need 0.05 duty to break away gives no sure travel at the duty that speed tak
 1.5 s bound holds it. The chair moves on
 (over 1.5 rad of heading, and somewhere new — 300 mm from where it began — in two of three
 windows, a third of the run each), every refusal carries the safety layer's named reasons and
-each was logged, and no memory growth: resident memory is sampled 90 times a run and its slope
-after a warm-up of a third of the run must stay under 100 kB per simulated minute (50 kB for
-the half hour; a leak of one small array per control step would be 50x that).
+each was logged, and no memory growth: memory is sampled 90 times a run, and after a warm-up of
+a third of the run Python's allocated blocks grow by under 1000 a minute (one leaked object per
+control step is 3000) and resident memory, trimmed, by under 1 MB per simulated minute (50 kB
+for the half hour). Both hold whatever the process ran before: run alone, a fresh process's
+heap still settles during the short run, which a slope of resident memory alone took for a leak.
 
 Not met (issue 13), measured with the swing model (2026-12-02): ``--soak-minutes 30`` passes
 at rider seed 7 (19.5 m, reaches 2908/3796/2468 mm in the three windows, 2 contacts, 1 counted
@@ -51,7 +53,10 @@ crept there.
 
 from __future__ import annotations
 
+import ctypes
 import logging
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -63,9 +68,24 @@ from omnid.sim.simulator import Simulator
 from omnid.sim.suite import soak_core, soak_course, soak_settings
 
 
-def _rss_mb() -> float:
+def _libc_trim() -> Callable[[], object]:
+    """glibc's ``malloc_trim(0)``: gives the heap's free pages back, so that resident memory
+    counts what is in use, not what a fresh process's heap left free behind it (no-op elsewhere)."""
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return lambda: None
+
+
+_TRIM = _libc_trim()
+
+
+def _memory() -> tuple[float, int]:
+    """Resident memory (MB, after a trim) and Python's allocated blocks (every object, an
+    array's header too, whatever the process ran before)."""
+    _TRIM(0)
     pages = int(Path("/proc/self/statm").read_text().split()[1])
-    return pages * 4096 / 2**20
+    return pages * 4096 / 2**20, sys.getallocatedblocks()
 
 
 class _ReasonsLogged(logging.Handler):
@@ -95,11 +115,11 @@ def test_soak_random_riding_at_the_configured_rates(request):
     # the daemon's memory (two refusal lines a second for 30 minutes); the records go to the
     # bounded handler above only
     old_propagate, daemon_log.propagate = daemon_log.propagate, False
-    rss: list[tuple[float, float]] = []
+    rss: list[tuple[float, float, int]] = []
 
     def sample(now_s: float, _sim: Simulator) -> None:
         if not rss or now_s >= rss[-1][0] + sample_s:
-            rss.append((now_s, _rss_mb()))
+            rss.append((now_s, *_memory()))
 
     # escape moves on and the unseen crossed at creep speed (omnid.sim.suite.SOAK_SAFETY), on
     # the thesis' stationary capture (a cloud every 0.5 s, staleness 1.5 s), not the shipped
@@ -166,13 +186,20 @@ def test_soak_random_riding_at_the_configured_rates(request):
         win = traj[(traj[:, 0] >= t0) & (traj[:, 0] < t0 + window_s)]
         reaches.append(np.hypot(win[:, 1] - win[0, 1], win[:, 2] - win[0, 2]).max())
     assert sum(r > 300.0 for r in reaches) >= 2, reaches
-    # Memory: the slope of resident memory after the warm-up (least squares over the samples).
-    t_mb = np.array([(t, m) for t, m in rss if t >= warm_up_s])
-    assert len(t_mb) >= 50, rss
-    slope_mb_per_min = np.polyfit(t_mb[:, 0] / 60.0, t_mb[:, 1], 1)[0]
-    assert slope_mb_per_min < (0.05 if duration_s >= 1800.0 else 0.1), (
+    # Memory: the slopes after the warm-up (least squares over the samples). Objects: a leak of
+    # one object every third control step is 1000 blocks a minute; the simulator's own records
+    # and the map's working set add ~200 (measured in a fresh process). Resident memory: in a
+    # fresh process the heap still settles in the 5-minute run (0.3-0.4 MB a minute, with no
+    # object or array more: a warm pytest worker shows none of it), so the short run bounds
+    # native leaks (cv2's buffers) at 1 MB a minute, 330 B a control step; the half hour at 0.05.
+    mem = np.array([row for row in rss if row[0] >= warm_up_s])
+    assert len(mem) >= 50, rss
+    blocks_per_min = np.polyfit(mem[:, 0] / 60.0, mem[:, 2], 1)[0]
+    assert blocks_per_min < 1000.0, (blocks_per_min, " ".join(f"{int(b)}" for *_, b in rss))
+    slope_mb_per_min = np.polyfit(mem[:, 0] / 60.0, mem[:, 1], 1)[0]
+    assert slope_mb_per_min < (0.05 if duration_s >= 1800.0 else 1.0), (
         slope_mb_per_min,
-        " ".join(f"{m:.1f}" for _, m in rss),
+        " ".join(f"{m:.1f}" for _, m, _ in rss),
     )
     # Every refusal carries its reasons, each one the safety layer's named code, and the core
     # logged each reason it refused for.
