@@ -166,6 +166,13 @@ def main() -> None:
     ap.add_argument("--perception", default="pipeline", choices=("pipeline", "truth"))
     ap.add_argument("--set", action="append", default=[], help="safety KEY=VALUE")
     ap.add_argument("--map", action="append", default=[], help="free-space map KEY=VALUE")
+    ap.add_argument(
+        "--perceive-time-s",
+        type=float,
+        default=None,
+        help="charge this much virtual time per cloud instead of perceive's wall time, so "
+        "that the run is the same however loaded the machine is (SimSettings.perceive_time_s)",
+    )
     args = ap.parse_args()
     trial = suite.SCENARIOS[args.scenario](args.rider, args.seed)
     changes = {k: _value(v) for k, v in (kv.split("=", 1) for kv in args.set)}
@@ -174,7 +181,10 @@ def main() -> None:
         kind = type(getattr(core.map.settings, k))
         core.map.settings = dataclasses.replace(core.map.settings, **{k: kind(_value(v))})
     tracer = Tracer(core)
-    _, _, _, st, _ = suite.simulate(trial, core, args.perception)
+    sim_changes = (
+        None if args.perceive_time_s is None else {"perceive_time_s": args.perceive_time_s}
+    )
+    _, _, _, st, _ = suite.simulate(trial, core, args.perception, sim_changes)
     rects = suite._rects(trial.course)
     start = trial.course.start_pose
 
