@@ -54,19 +54,16 @@ def step_cost(minutes: float) -> None:
     """Per-step wall time of ``ControlCore.step`` in the soak, fast sweep vs the reference."""
     import logging
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "scenarios"))
-    from test_soak import cluttered_room, soak_settings  # type: ignore[import-not-found]
-
     from omnid.sim.rider import random_ride
-    from omnid.sim.scenario import make_core
     from omnid.sim.simulator import Simulator
+    from omnid.sim.suite import soak_core, soak_course, soak_settings
 
     logging.disable(logging.CRITICAL)
     duration = 60.0 * minutes
     print(f"machine: {os.cpu_count()} cores; soak setup, {minutes:g} simulated min each")
     rows = {}
     for name in ("reference (sampled sweep)", "closed-form sweep"):
-        core = make_core(joystick=True)
+        core = soak_core()
         if name.startswith("reference"):
             core.safety.sweep = core.safety.sweep_reference  # type: ignore[method-assign]
         times: list[float] = []
@@ -79,7 +76,7 @@ def step_cost(minutes: float) -> None:
             return out
 
         core.step = timed  # type: ignore[method-assign]
-        sim = Simulator(cluttered_room(), core, soak_settings(), joystick=random_ride(7, duration))
+        sim = Simulator(soak_course(), core, soak_settings(), joystick=random_ride(7, duration))
         w0 = time.perf_counter()
         r = sim.run(duration)
         wall = time.perf_counter() - w0
