@@ -183,21 +183,16 @@ def _openblas_call(what: str, *args: int) -> list[int]:
         maps = Path("/proc/self/maps").read_text()
     except OSError:
         return []
+    names = [f"{p}_{what}{s}" for p in _OPENBLAS_PREFIXES for s in _OPENBLAS_SUFFIXES]
     out = []
     for lib in sorted(set(re.findall(r"(/\S*openblas\S*\.so\S*)", maps))):
         try:
             dll = ctypes.CDLL(lib)
         except OSError:
             continue
-        for prefix in _OPENBLAS_PREFIXES:
-            for suffix in _OPENBLAS_SUFFIXES:
-                fn = getattr(dll, f"{prefix}_{what}{suffix}", None)
-                if fn is not None:
-                    out.append(int(fn(*args) or 0))
-                    break
-            else:
-                continue
-            break
+        fn = next((f for f in (getattr(dll, n, None) for n in names) if f is not None), None)
+        if fn is not None:
+            out.append(int(fn(*args) or 0))
     return out
 
 

@@ -138,14 +138,7 @@ def faulty_perceive(capture, calib, method, settings) -> PointCloud:
         os._exit(3)
     if code == 3:
         raise ValueError("bad capture")
-    x = float(capture.base1[0, 0])
-    return PointCloud(
-        xyz=np.array([[x, 0.0, 1100.0]]),
-        cov=np.zeros((1, 3, 3)),
-        pixels=np.zeros((1, 4)),
-        classes=np.zeros(1, np.uint8),
-        floor_depth_mm=1100.0,
-    )
+    return one_floor_point(float(capture.base1[0, 0]))
 
 
 def blas_threads_perceive(capture, calib, method, settings) -> PointCloud:
@@ -153,8 +146,13 @@ def blas_threads_perceive(capture, calib, method, settings) -> PointCloud:
     in the worker process may use (0: none loaded)."""
     from omnid.daemon.perception_worker import blas_threads
 
+    return one_floor_point(float(max(blas_threads(), default=0)))
+
+
+def one_floor_point(x_mm: float) -> PointCloud:
+    """A cloud of one floor point at (x_mm, 0, 1100) mm: what the perceive stand-ins reply."""
     return PointCloud(
-        xyz=np.array([[float(max(blas_threads(), default=0)), 0.0, 1100.0]]),
+        xyz=np.array([[x_mm, 0.0, 1100.0]]),
         cov=np.zeros((1, 3, 3)),
         pixels=np.zeros((1, 4)),
         classes=np.zeros(1, np.uint8),

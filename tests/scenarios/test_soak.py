@@ -68,13 +68,13 @@ from omnid.sim.simulator import Simulator
 from omnid.sim.suite import soak_core, soak_course, soak_settings
 
 
-def _libc_trim() -> Callable[[], object]:
+def _libc_trim() -> Callable[[int], object]:
     """glibc's ``malloc_trim(0)``: gives the heap's free pages back, so that resident memory
     counts what is in use, not what a fresh process's heap left free behind it (no-op elsewhere)."""
     try:
         return ctypes.CDLL("libc.so.6").malloc_trim
     except (OSError, AttributeError):
-        return lambda: None
+        return lambda _pad: None
 
 
 _TRIM = _libc_trim()
