@@ -523,3 +523,36 @@ def test_a_softened_straight_request_is_not_steered_into_a_wall():
     assert decisions[-1].stopped or decisions[-1].v_mm_s < 25.0
     assert poses[-1, 0] + cfg.footprint_front_mm < 1000.0  # short of the box
     assert any(Reason.SOFTENED in d.reasons for d in decisions)
+
+
+def test_a_single_never_seen_cell_ahead_after_a_turn_in_place_is_refused():
+    """Issue 13: after a 45° turn in place (no re-anchoring) the map's robot-frame grid, a
+    nearest-neighbour resample, loses some single never-seen cells; the unseen rules take the
+    anchor's cells moved exactly, so a sweep that crosses one is refused or slowed every time."""
+    from omnid.core.freespace import FreeSpaceMap
+
+    m = FreeSpaceMap()
+    m.move(0.0, 0.0, math.radians(45.0))
+    a = m._anchor  # the stored (anchor-frame) cells: all seen FREE but one
+    x, y, th = m.pose_in_anchor
+    layer = SafetyLayer(SafetySettings())
+    unseen_reasons = {Reason.UNKNOWN_STOP, Reason.UNKNOWN_AHEAD}
+    free = 0
+    for dist in np.arange(800.0, 1600.0, 100.0):  # beyond the front blind band
+        for lat in np.arange(-300.0, 301.0, 50.0):
+            wx = x + math.cos(th) * dist - math.sin(th) * lat
+            wy = y + math.sin(th) * dist + math.cos(th) * lat
+            i, j, _ = a.cell_index([[wx, wy]])
+            a.states[:] = CellState.FREE
+            a.states[i[0], j[0]] = CellState.UNKNOWN
+            m.version += 1
+            m._grid = None
+            key = (m.version, m.pose_in_anchor)
+            d = layer.check(
+                m.grid, 800.0, 0.0, 0.1, 0.0, m.blocking_evidence(), key, m.unknown_cells(4000.0)
+            )
+            assert d.v_mm_s < 800.0 and unseen_reasons & set(d.reasons), (dist, lat, d)
+            # the robot-frame grid alone: the check main made (some cells vanish from it)
+            g = layer.check(m.grid, 800.0, 0.0, 0.1, 0.0, m.blocking_evidence(), key)
+            free += g.v_mm_s == 800.0
+    assert free > 0  # the resample loses some of these cells: the exact cells are needed
