@@ -267,6 +267,9 @@ def suite(args: argparse.Namespace) -> int:
         changes[key] = flags[value.lower()] if value.lower() in flags else value \
             if not value.replace(".", "", 1).replace("-", "", 1).isdigit() else float(value)  # fmt: skip
     names = [n for n in SCENARIOS if not args.scenarios or n in args.scenarios.split(",")]
+    sim_changes = (
+        None if args.perceive_time_s is None else {"perceive_time_s": args.perceive_time_s}
+    )
     print(f"suite: {len(names)} scenarios x {len(RIDERS)} riders x {args.seeds} seeds, "
           f"perception {args.perception}, safety changes {changes or 'none'}", flush=True)  # fmt: skip
     print("| scenario | rider | runs | contacts | falls | false stops (unseen) | per 10 min "
@@ -284,7 +287,7 @@ def suite(args: argparse.Namespace) -> int:
                     trial = clutter(rider, seed, 60.0 * args.clutter_minutes)
                 else:
                     trial = SCENARIOS[name](rider, seed)
-                rows.append(run_trial(trial, args.perception, changes))
+                rows.append(run_trial(trial, args.perception, changes, sim_changes))
             minutes = sum(r.duration_s for r in rows) / 60.0
             fs = sum(r.false_stops for r in rows)
             fs_unseen = sum(r.false_stops_unseen for r in rows)
@@ -337,6 +340,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenarios", default="", help="suite: comma list of scenario names")
     ap.add_argument("--clutter-minutes", type=float, default=10.0)
     ap.add_argument("--set", action="append", default=[], help="suite: safety KEY=VALUE")
+    ap.add_argument(
+        "--perceive-time-s",
+        type=float,
+        default=None,
+        help="suite: charge this much virtual time per cloud instead of perceive's wall time, so "
+        "that the runs are the same however loaded the machine is (SimSettings.perceive_time_s)",
+    )
     ap.add_argument("--perception", choices=("pipeline", "truth"), default="pipeline")
     ap.add_argument("--fault-perception", choices=("pipeline", "truth"), default="pipeline")
     ap.add_argument("--free-minutes", type=float, default=3.0)
