@@ -763,6 +763,10 @@ class FreeSpaceMap:
         xy = self._unknown[1]
         x, y, th = self._pose
         c, sn = math.cos(th), math.sin(th)
+        if math.isfinite(max_range_mm):  # the centres come row by row: x never decreases
+            k0 = int(np.searchsorted(xy[:, 0], x - max_range_mm, "left"))
+            k1 = int(np.searchsorted(xy[:, 0], x + max_range_mm, "right"))
+            xy = xy[k0:k1]
         dx, dy = xy[:, 0] - x, xy[:, 1] - y
         if math.isfinite(max_range_mm):
             near = dx * dx + dy * dy <= max_range_mm * max_range_mm
