@@ -829,8 +829,16 @@ class SafetyLayer:
         # a cell's extent is its centre grown by its half-diagonal: the footprint turns along
         # the swing, so even a cell square to it now is turned against it later (half a cell
         # would miss its corners); against the footprint itself (the margin is for the position
-        # error of things seen) (one the chair overlaps now, its trail's edge: no nearer)
-        s_ext = self._contact(px[swing], py[swing], h, v_mm_s, omega_rad_s, u, False)
+        # error of things seen) (one that may overlap it now: no nearer than it is). A cell
+        # the chair surely overlaps now (its centre nearer than half a cell: the disc inside
+        # the cell, however turned, reaches under the chair) is its trail's edge — the map
+        # frees a cell once its centre was under the chair, and in the robot frame exactly
+        # (turned, offset) such cells reach under it: by its centre, as the leading face meets
+        # cells (the map's resolution; else every swing towards it would be refused).
+        sx, sy = px[swing], py[swing]
+        s_ext = self._contact(sx, sy, h, v_mm_s, omega_rad_s, u, False)
+        edge = self._rect_distance(sx, sy) < h / math.sqrt(2.0)
+        s_ext[edge] = s_mm[swing][edge]
         found = (s_mm[~blind], s_mm[blind], s_mm[~blind & lead], s_ext)
         first = [float(x.min()) if x.size and x.min() <= reach else math.inf for x in found]
         result = (first[0], first[1], first[2], first[3])
