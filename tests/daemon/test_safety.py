@@ -556,3 +556,22 @@ def test_a_single_never_seen_cell_ahead_after_a_turn_in_place_is_refused():
             g = layer.check(m.grid, 800.0, 0.0, 0.1, 0.0, m.blocking_evidence(), key)
             free += g.v_mm_s == 800.0
     assert free > 0  # the resample loses some of these cells: the exact cells are needed
+
+
+def test_a_never_seen_cell_reaching_under_the_chair_is_its_trails_edge():
+    """Exactly in the robot frame, a 50 mm cell whose centre lies just outside the chair reaches
+    under it (the map freed only the cells whose centre was under the chair): a swing towards
+    it meets it by its centre, as the leading face would; one not surely under the chair (its
+    centre half a cell or more away) keeps the extent rule and refuses the same swing."""
+    g = OccupancyGrid(GridSettings(resolution_mm=50.0))
+    g.states[:] = CellState.FREE
+    h = 25.0 * math.sqrt(2.0)
+    rear, side = -S.footprint_rear_mm, 0.5 * S.footprint_width_mm
+    key = ("exact cells", 0)
+    for centre, refused in [
+        ((rear - 14.0, side + 19.0), False),
+        ((rear - 20.0, side + 30.0), True),
+    ]:
+        unseen = (np.array([centre]), h)
+        d = SafetyLayer(S).check(g, 0.0, -0.4, 0.1, 0.0, None, key, unseen)
+        assert d.stopped == refused and (Reason.UNKNOWN_STOP in d.reasons) == refused, (centre, d)
