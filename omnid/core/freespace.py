@@ -220,6 +220,7 @@ class FreeSpaceMap:
         self._strips: _Strips | None = None  # the last capture's lattice strips
         self._evidence: tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
         self._evidence = (-1, np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
+        self._unknown: tuple[int, NDArray[np.float64]] = (-1, np.zeros((0, 2)))
         self._occupied: tuple[float, float, float] | None = None  # pose of the last occupy
 
     # -- motion -------------------------------------------------------------------------------
@@ -742,6 +743,36 @@ class FreeSpaceMap:
             dx, dy, grow, drop = dx[near], dy[near], grow[near], drop[near]
         robot = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy])
         return robot, grow, drop
+
+    def unknown_cells(self, max_range_mm: float = math.inf) -> tuple[NDArray[np.float64], float]:
+        """The never-seen cells within ``max_range_mm`` of the axle: (their centres (N, 2),
+        robot frame mm; the half-diagonal of a cell, mm — anything in a cell lies within it of
+        the centre, however the cell is turned against the robot frame).
+
+        The cells are the anchor grid's UNKNOWN cells, moved into the robot frame exactly (no
+        resampling: :attr:`grid` is a nearest-neighbour view, in which a single never-seen cell
+        may vanish and an unseen edge lies up to this half-diagonal off while the chair's
+        heading differs from the anchor's). Beyond the anchor grid is unseen as well; the
+        caller counts space off :attr:`grid` as unseen (the robot grid lies inside the anchor
+        grid)."""
+        if self._unknown[0] != self.version:
+            a = self._anchor
+            i, j = np.nonzero(a.states == CellState.UNKNOWN)
+            xs, ys = a.cell_centers()
+            self._unknown = (self.version, np.column_stack([xs[i], ys[j]]))
+        xy = self._unknown[1]
+        x, y, th = self._pose
+        c, sn = math.cos(th), math.sin(th)
+        if math.isfinite(max_range_mm):  # the centres come row by row: x never decreases
+            k0 = int(np.searchsorted(xy[:, 0], x - max_range_mm, "left"))
+            k1 = int(np.searchsorted(xy[:, 0], x + max_range_mm, "right"))
+            xy = xy[k0:k1]
+        dx, dy = xy[:, 0] - x, xy[:, 1] - y
+        if math.isfinite(max_range_mm):
+            near = dx * dx + dy * dy <= max_range_mm * max_range_mm
+            dx, dy = dx[near], dy[near]
+        robot = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy])
+        return robot, 0.5 * self._anchor_settings.resolution_mm * math.sqrt(2.0)
 
     def _pixels(self, xy: NDArray[np.float64]) -> NDArray[np.float64]:
         """Anchor-frame points (N, 2) mm → continuous (col, row) pixel coordinates of cv2."""

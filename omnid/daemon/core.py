@@ -383,16 +383,18 @@ class ControlCore:
         cos = (float(vl) * self.bump_direction[0] + float(vr) * self.bump_direction[1]) / norm
         return cos >= math.cos(math.radians(self.config.motion.bump_same_direction_deg))
 
-    def _evidence(self) -> tuple[Any, object]:
-        """The map's exact blocking evidence near the chair and a key naming it (its version and
-        the chair's pose in it), or (None, None) for a map that has none (a bare grid)."""
+    def _evidence(self) -> tuple[Any, object, Any]:
+        """The map's exact blocking evidence near the chair, a key naming it (its version and
+        the chair's pose in it) and its never-seen cells moved exactly into the robot frame, or
+        (None, None, None) for a map that has none (a bare grid: its own cells then)."""
         get = getattr(self.map, "blocking_evidence", None)
         if get is None:
-            return None, None
+            return None, None, None
         sf = self.config.safety
         reach = sf.horizon_mm + self.safety.r_max_mm + self.grid.settings.resolution_mm
         key = (getattr(self.map, "version", None), getattr(self.map, "pose_in_anchor", None))
-        return get(reach), key
+        unknown = getattr(self.map, "unknown_cells", None)
+        return get(reach), key, None if unknown is None else unknown(reach)
 
     def step(self, now_s: float) -> WheelCommand:
         """One control cycle at monotonic time ``now_s``; never raises."""
@@ -539,8 +541,8 @@ class ControlCore:
         if bump_refused:
             decision = SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.BUMP,))
         else:
-            evidence, key = self._evidence()
-            decision = self.safety.check(self.grid, v_req, w_req, age, now_s, evidence, key)
+            evidence, key, unseen = self._evidence()
+            decision = self.safety.check(self.grid, v_req, w_req, age, now_s, evidence, key, unseen)
         reasons.extend(decision.reasons)
         if decision.scale < 1.0 and (decision.stopped or decision.reasons):
             # refused or limited: brake at the emergency rate if the chair is faster than allowed

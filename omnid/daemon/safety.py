@@ -336,6 +336,10 @@ def contact_path_s(
 #: which are drop-offs (N,) (``FreeSpaceMap.blocking_evidence``).
 Evidence = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
+#: Never-seen cells in the robot frame: their centres (N, 2) mm and how far from its centre
+#: anything in a cell may lie (mm, a cell's half-diagonal) (``FreeSpaceMap.unknown_cells``).
+Unseen = tuple[NDArray[np.float64], float]
+
 
 class _Sweep(NamedTuple):
     """A cached blocking sweep (:meth:`SafetyLayer._blocking_sweep`): the first contact (mm) and
@@ -425,6 +429,8 @@ class SafetyLayer:
         self._fractions: dict[tuple[float, float], float] = {}
         # per twist: unknown_clearance's (unseen, blind) and unknown_contacts' (leading, swing)
         self._unknown: dict[tuple[float, float], tuple[float, float, float, float]] = {}
+        # the never-seen cells given to :meth:`check` (None: the grid's UNKNOWN cells)
+        self._unseen: Unseen | None = None
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
         ) = None
@@ -651,7 +657,8 @@ class SafetyLayer:
         if evidence is not None and key is None:
             map_key = None
         else:
-            map_key = (grid.settings, grid.states.shape, grid.states.tobytes(), key)
+            unseen = self._unseen is not None
+            map_key = (grid.settings, grid.states.shape, grid.states.tobytes(), key, unseen)
         if map_key is not None and map_key == self._map_key and self._blocking is not None:
             return
         self._map_key = map_key
@@ -794,9 +801,22 @@ class SafetyLayer:
         a0, a1, b0, b1 = max(i0, 0), min(i1, nx), max(j0, 0), min(j1, ny)
         if a1 > a0 and b1 > b0:
             sub[a0 - i0 : a1 - i0, b0 - j0 : b1 - j0] = grid.states[a0:a1, b0:b1]
+            if self._unseen is not None:
+                sub[a0 - i0 : a1 - i0, b0 - j0 : b1 - j0] = CellState.FREE  # given exactly
         ii, jj = np.nonzero(sub == CellState.UNKNOWN)
         px = g.x_min_mm + (i0 + ii + 0.5) * res
         py = g.y_min_mm + (j0 + jj + 0.5) * res
+        if self._unseen is not None:
+            # the map's never-seen cells, moved into this frame exactly (a turned cell: its
+            # extent within its half-diagonal); off the grid, as above, the grid's own cells
+            uxy, ugrow = self._unseen
+            ux, uy = uxy[:, 0], uxy[:, 1]
+            bx0, bx1 = g.x_min_mm + i0 * res - ugrow, g.x_min_mm + i1 * res + ugrow
+            by0, by1 = g.y_min_mm + j0 * res - ugrow, g.y_min_mm + j1 * res + ugrow
+            near = (ux >= bx0) & (ux <= bx1) & (uy >= by0) & (uy <= by1)
+            px = np.concatenate([px, ux[near]])
+            py = np.concatenate([py, uy[near]])
+            h = max(h, float(ugrow))
         body = (self._fx0, self._fx1, self._fy0, self._fy1)
         s_mm = contact_path_s(px, py, v_mm_s, omega_rad_s, body, u, s.horizon_mm)
         s_mm[s_mm == 0.0] = math.inf  # under the chair now: its own trail
@@ -806,10 +826,19 @@ class SafetyLayer:
             blind &= np.abs(py) <= self._y1 + h
         lead = self._leading(px, py, s_mm, v_mm_s, omega_rad_s, u)
         swing = ~blind & ~lead
-        # the grid is in the robot frame: a cell's extent is its centre grown by half a cell;
-        # against the footprint itself (the margin is for the position error of things seen)
-        # (one the chair overlaps now, its trail's edge: no nearer than it is)
-        s_ext = self._contact(px[swing], py[swing], 0.5 * res, v_mm_s, omega_rad_s, u, False)
+        # a cell's extent is its centre grown by its half-diagonal: the footprint turns along
+        # the swing, so even a cell square to it now is turned against it later (half a cell
+        # would miss its corners); against the footprint itself (the margin is for the position
+        # error of things seen) (one that may overlap it now: no nearer than it is). A cell
+        # the chair surely overlaps now (its centre nearer than half a cell: the disc inside
+        # the cell, however turned, reaches under the chair) is its trail's edge — the map
+        # frees a cell once its centre was under the chair, and in the robot frame exactly
+        # (turned, offset) such cells reach under it: by its centre, as the leading face meets
+        # cells (the map's resolution; else every swing towards it would be refused).
+        sx, sy = px[swing], py[swing]
+        s_ext = self._contact(sx, sy, h, v_mm_s, omega_rad_s, u, False)
+        edge = self._rect_distance(sx, sy) < h / math.sqrt(2.0)
+        s_ext[edge] = s_mm[swing][edge]
         found = (s_mm[~blind], s_mm[blind], s_mm[~blind & lead], s_ext)
         first = [float(x.min()) if x.size and x.min() <= reach else math.inf for x in found]
         result = (first[0], first[1], first[2], first[3])
@@ -990,14 +1019,39 @@ class SafetyLayer:
         now_s: float = 0.0,
         evidence: Evidence | None = None,
         evidence_key: object = None,
+        unseen: Unseen | None = None,
     ) -> SafetyDecision:
         """The allowed twist for a requested (v mm/s, ω rad/s), given the map and its age (s).
 
-        ``evidence`` / ``evidence_key``: the map's exact blocking evidence (see :meth:`sweep`);
-        ``grid`` gives the unknown cells either way. A limited turn is softened (module
-        docstring, :meth:`soften`)."""
+        ``evidence`` / ``evidence_key``: the map's exact blocking evidence (see :meth:`sweep`).
+        ``unseen``: the map's never-seen cells moved exactly into the robot frame (see
+        :data:`Unseen`; named by ``evidence_key`` as well), which the unseen-space rules then
+        use instead of the UNKNOWN cells of ``grid`` (space off ``grid`` is unseen either way;
+        the unknown fraction, a share of points sampled at ``grid``'s centres, reads ``grid``).
+        A limited turn is softened (module docstring, :meth:`soften`)."""
         if not (math.isfinite(v_mm_s) and math.isfinite(omega_rad_s)):
             return self._report(SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.FAULT,)), now_s)
+        if unseen is not None and evidence_key is None:
+            raise ValueError("SafetyLayer.check: unseen cells need an evidence_key naming them")
+        self._unseen = unseen
+        try:
+            return self._check(
+                grid, v_mm_s, omega_rad_s, perception_age_s, now_s, evidence, evidence_key
+            )
+        finally:
+            self._unseen = None
+
+    def _check(
+        self,
+        grid: OccupancyGrid,
+        v_mm_s: float,
+        omega_rad_s: float,
+        perception_age_s: float | None,
+        now_s: float,
+        evidence: Evidence | None,
+        evidence_key: object,
+    ) -> SafetyDecision:
+        """:meth:`check` after its input checks."""
         decision = self._limit(grid, v_mm_s, omega_rad_s, perception_age_s, evidence, evidence_key)
         # a straight forward request when what limits it within the slow zone is a side
         # intrusion a small shift clears (a door jamb); the arcs turn away from it

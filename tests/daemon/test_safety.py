@@ -523,3 +523,55 @@ def test_a_softened_straight_request_is_not_steered_into_a_wall():
     assert decisions[-1].stopped or decisions[-1].v_mm_s < 25.0
     assert poses[-1, 0] + cfg.footprint_front_mm < 1000.0  # short of the box
     assert any(Reason.SOFTENED in d.reasons for d in decisions)
+
+
+def test_a_single_never_seen_cell_ahead_after_a_turn_in_place_is_refused():
+    """Issue 13: after a 45° turn in place (no re-anchoring) the map's robot-frame grid, a
+    nearest-neighbour resample, loses some single never-seen cells; the unseen rules take the
+    anchor's cells moved exactly, so a sweep that crosses one is refused or slowed every time."""
+    from omnid.core.freespace import FreeSpaceMap
+
+    m = FreeSpaceMap()
+    m.move(0.0, 0.0, math.radians(45.0))
+    a = m._anchor  # the stored (anchor-frame) cells: all seen FREE but one
+    x, y, th = m.pose_in_anchor
+    layer = SafetyLayer(SafetySettings())
+    unseen_reasons = {Reason.UNKNOWN_STOP, Reason.UNKNOWN_AHEAD}
+    free = 0
+    for dist in np.arange(800.0, 1600.0, 100.0):  # beyond the front blind band
+        for lat in np.arange(-300.0, 301.0, 50.0):
+            wx = x + math.cos(th) * dist - math.sin(th) * lat
+            wy = y + math.sin(th) * dist + math.cos(th) * lat
+            i, j, _ = a.cell_index([[wx, wy]])
+            a.states[:] = CellState.FREE
+            a.states[i[0], j[0]] = CellState.UNKNOWN
+            m.version += 1
+            m._grid = None
+            key = (m.version, m.pose_in_anchor)
+            d = layer.check(
+                m.grid, 800.0, 0.0, 0.1, 0.0, m.blocking_evidence(), key, m.unknown_cells(4000.0)
+            )
+            assert d.v_mm_s < 800.0 and unseen_reasons & set(d.reasons), (dist, lat, d)
+            # the robot-frame grid alone: the check main made (some cells vanish from it)
+            g = layer.check(m.grid, 800.0, 0.0, 0.1, 0.0, m.blocking_evidence(), key)
+            free += g.v_mm_s == 800.0
+    assert free > 0  # the resample loses some of these cells: the exact cells are needed
+
+
+def test_a_never_seen_cell_reaching_under_the_chair_is_its_trails_edge():
+    """Exactly in the robot frame, a 50 mm cell whose centre lies just outside the chair reaches
+    under it (the map freed only the cells whose centre was under the chair): a swing towards
+    it meets it by its centre, as the leading face would; one not surely under the chair (its
+    centre half a cell or more away) keeps the extent rule and refuses the same swing."""
+    g = OccupancyGrid(GridSettings(resolution_mm=50.0))
+    g.states[:] = CellState.FREE
+    h = 25.0 * math.sqrt(2.0)
+    rear, side = -S.footprint_rear_mm, 0.5 * S.footprint_width_mm
+    key = ("exact cells", 0)
+    for centre, refused in [
+        ((rear - 14.0, side + 19.0), False),
+        ((rear - 20.0, side + 30.0), True),
+    ]:
+        unseen = (np.array([centre]), h)
+        d = SafetyLayer(S).check(g, 0.0, -0.4, 0.1, 0.0, None, key, unseen)
+        assert d.stopped == refused and (Reason.UNKNOWN_STOP in d.reasons) == refused, (centre, d)
