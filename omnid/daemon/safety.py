@@ -160,7 +160,8 @@ class SafetySettings(Settings):
     unknown_creep_speed_mm_s: float = setting(60.0, 5.0, 200.0)  # fastest footprint point
     # ahead of the footprint (margin included) the laser cannot see from where the chair stands:
     # rig offset + nearest dot − footprint front − margin (300 + 330 − 350 − 50 = 230), rounded
-    # up; crossed at unknown_creep_speed_mm_s whatever the policy (0: refused like the rest)
+    # up; crossed at unknown_creep_speed_mm_s whatever the policy, and approached no faster
+    # than the chair can slow to that by the stop line (0: refused like the rest)
     front_blind_mm: float = setting(250.0, 0.0, 2000.0)
     # perception older than this → no forward motion; perception.capture: stream delivers a
     # cloud every ~50 ms (a base waits ≤ 2 frames for its mask, ~90 ms to the map): 0.3 s is
@@ -1281,9 +1282,14 @@ class SafetyLayer:
                 if u > cap:
                     reasons.append(Reason.UNKNOWN_AHEAD)
                     caps.append(cap)
-        if blind <= s.stop_distance_mm and u > creep:
+        # the blind band is crossed at the creep speed, so it is approached no faster than the
+        # chair can slow to it by the stop line (a cell that came into the band from the side,
+        # in an arc or after a turn, would otherwise be met at the speed of free floor)
+        room = max(0.0, blind - s.stop_distance_mm)
+        cap = max(creep, self._approach_cap(room)) if blind < math.inf else u
+        if u > cap:
             reasons.append(Reason.UNKNOWN_CREEP)
-            caps.append(creep)
+            caps.append(cap)
         if min(caps) <= beat_cap:
             return None
         unknown = self._sweep_unknown(grid, v_mm_s, omega_rad_s, clearance)

@@ -142,6 +142,24 @@ def test_straight_ahead_the_laser_cannot_see_the_footrests_band_it_is_crossed_at
     assert SafetyLayer(S).check(g, 250.0, 0.0, perception_age_s=0.1).scale == 1.0
 
 
+def test_a_never_seen_cell_in_the_blind_band_is_approached_no_faster_than_creep_allows():
+    # seen everywhere but one cell straight ahead in the band the laser cannot reach from here
+    # (it came into the band from the side): a fast forward request may go only as fast as the
+    # chair can slow to the creep speed by that cell's stop line
+    layer = SafetyLayer(S)
+    for ahead_mm in (100.0, 170.0, 240.0):  # the band: front_blind_mm (250) ahead
+        g = free_grid()
+        i, j, _ = g.cell_index([[S.footprint_front_mm + ahead_mm, 0.0]])
+        g.states[i, j] = CellState.UNKNOWN
+        d = layer.check(g, 600.0, 0.0, perception_age_s=0.1)
+        blind = layer.unknown_clearance(g, 600.0, 0.0)[1]  # (cached by the check)
+        assert blind < math.inf, ahead_mm
+        assert not d.stopped and Reason.UNKNOWN_CREEP in d.reasons, (ahead_mm, d)
+        room = max(0.0, blind - S.stop_distance_mm)
+        creep = S.unknown_creep_speed_mm_s
+        assert d.v_mm_s**2 <= creep**2 + 2.0 * S.brake_decel_mm_s2 * room + 1e-6, (ahead_mm, d)
+
+
 def test_the_creep_policy_crosses_unseen_space_slowly():
     layer = SafetyLayer(dataclasses.replace(S, unknown_policy="creep"))
     for v, w in [(-100.0, 0.0), (0.0, 0.5)]:
