@@ -313,13 +313,15 @@ def _update(
     win_r, win_c = st.win_r[k], st.win_c[k]
     cr, cc, s, mass = st.cr[k], st.cc[k], st.s[k], st.mass[k]
     b0, br, bc = st.b0[k], st.br[k], st.bc[k]
-    ur = win_r - cr[:, None]
-    uc = win_c - cc[:, None]
-    size = ur.shape[1]
-    gr, dr, sr = window_gaussian(ur[:, :1], size, s[:, None])
-    gc, dc, sc = window_gaussian(uc[:, :1], size, s[:, None])
-    taper = -0.5 / (TAPER_PER_SIGMA * s[:, None]) ** 2
-    wr, wc = np.exp(ur * ur * taper), np.exp(uc * uc * taper)
+    # (rows and columns stacked, (2n, size): each per-axis function is one call for both)
+    u = np.concatenate([win_r, win_c]) - np.concatenate([cr, cc])[:, None]
+    ur, uc = u[:n], u[n:]
+    size = u.shape[1]
+    s2 = np.concatenate([s, s])[:, None]
+    g, dg, sg = window_gaussian(u[:, :1], size, s2)
+    gr, gc, dr, dc, sr, sc = g[:n], g[n:], dg[:n], dg[n:], sg[:n], sg[n:]
+    wrc = np.exp(u * u * (-0.5 / (TAPER_PER_SIGMA * s2) ** 2))
+    wr, wc = wrc[:n], wrc[n:]
     data = st.win[k]
     local = np.full(len(st.cr), -1, np.intp)
     local[k] = np.arange(n)
@@ -423,9 +425,9 @@ def _neighbour_profiles(
     product times the neighbour's mass)."""
     size = win_r.shape[1]
     sj = st.s[j, None]
-    gjr = window_gaussian(win_r[i, :1] - st.cr[j, None], size, sj, derivatives=False)[0]
-    gjc = window_gaussian(win_c[i, :1] - st.cc[j, None], size, sj, derivatives=False)[0]
-    return gjr, gjc
+    u0 = np.concatenate([win_r[i, :1] - st.cr[j, None], win_c[i, :1] - st.cc[j, None]])
+    g = window_gaussian(u0, size, np.concatenate([sj, sj]), derivatives=False)[0]
+    return g[: len(i)], g[len(i) :]
 
 
 def _neighbour_light(
