@@ -5,22 +5,31 @@ the default and the dense laser over nine capture seeds, runs ``detect._detect_b
 the dots to an ``.npz`` (``--save``) or compares them with one written earlier (``--compare``),
 e.g. by another checkout (``PYTHONPATH=DIR python tools/check_split_same.py --save ref.npz``).
 Prints, per setting, the images, the dots and the largest centre difference (px); fails (rc 1)
-where a dot count differs or a centre moved more than ``--tol-px``.
+where a dot count differs or a centre moved more than ``--tol-px``. With ``--repeats N``, also
+the detector's time on both cameras of each laser's seed-3 capture, split off and on: thread
+time, min of N (one core), in turns — run it with each tree's ``PYTHONPATH`` alternately.
 
 Run from the repository root:  python tools/check_split_same.py --save ref.npz | --compare ref.npz
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
+import os
 
-import numpy as np
+# One core: BLAS threads must be fixed before numpy is imported.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
 
-from omnid.core import detect
-from omnid.core.geometry import StereoRig
-from omnid.sim.laser import LaserProjector
-from omnid.sim.render import RenderOptions, render_capture
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from omnid.core import detect  # noqa: E402
+from omnid.core.geometry import StereoRig  # noqa: E402
+from omnid.sim.laser import LaserProjector  # noqa: E402
+from omnid.sim.render import RenderOptions, render_capture  # noqa: E402
 
 
 def images() -> list[tuple[np.ndarray, np.ndarray]]:
@@ -40,6 +49,19 @@ def images() -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def thread_ms(images_: list[tuple[np.ndarray, np.ndarray]], repeats: int) -> tuple[float, float]:
+    """Min thread time (ms) of the detector on all of ``images_``, split off and on, in turns."""
+    params = detect.DetectionParams()
+    best = {False: np.inf, True: np.inf}
+    for _ in range(repeats + 1):  # (the first: warm-up)
+        for split in (False, True):
+            t0 = time.thread_time()
+            for mask, base in images_:
+                detect._detect_best(mask, base, params, split_blends=split)
+            best[split] = min(best[split], 1e3 * (time.thread_time() - t0))
+    return best[False], best[True]
+
+
 def detections() -> dict[str, np.ndarray]:
     """Every image's dots (N, 3), split off and on, keyed ``off_<i>`` / ``on_<i>``."""
     params = detect.DetectionParams()
@@ -56,7 +78,16 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--save", help="write the dots to this .npz")
     group.add_argument("--compare", help="compare the dots with this .npz")
     ap.add_argument("--tol-px", type=float, default=1e-9, help="largest centre difference, px")
+    ap.add_argument("--repeats", type=int, default=0, help="also time the detector (min of N)")
     args = ap.parse_args(argv)
+    if args.repeats:
+        import cv2
+
+        cv2.setNumThreads(1)
+        caps = images()
+        for name, first in (("default", 3 * 2), ("dense", 9 * 2 + 3 * 2)):
+            off, on = thread_ms(caps[first : first + 2], args.repeats)
+            print(f"{name} laser, both cameras: {off:.2f} ms, split {on:.2f} ms (+{on - off:.2f})")
     dots = detections()
     if args.save:
         np.savez(args.save, **dots)  # type: ignore[arg-type]
