@@ -774,19 +774,19 @@ class FreeSpaceMap:
         k0 = int(np.searchsorted(xy[:, 0], x - max_range_mm, "left"))
         k1 = int(np.searchsorted(xy[:, 0], x + max_range_mm, "right"))
         xy = xy[k0:k1]
-        a = self._anchor_settings
+        st = self._anchor_settings
         if (
-            x - max_range_mm < a.x_min_mm
-            or x + max_range_mm > a.x_max_mm
-            or y - max_range_mm < a.y_min_mm
-            or y + max_range_mm > a.y_max_mm
+            x - max_range_mm < st.x_min_mm
+            or x + max_range_mm > st.x_max_mm
+            or y - max_range_mm < st.y_min_mm
+            or y + max_range_mm > st.y_max_mm
         ):
             xy = np.vstack([xy, self._beyond_anchor(x, y, max_range_mm)])
         dx, dy = xy[:, 0] - x, xy[:, 1] - y
         near = dx * dx + dy * dy <= max_range_mm * max_range_mm
         dx, dy = dx[near], dy[near]
         robot = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy])
-        return robot, 0.5 * a.resolution_mm * math.sqrt(2.0)
+        return robot, 0.5 * st.resolution_mm * math.sqrt(2.0)
 
     def _beyond_anchor(self, x_mm: float, y_mm: float, range_mm: float) -> NDArray[np.float64]:
         """Centres (N, 2), anchor frame mm, of the anchor's lattice continued past its edges
