@@ -78,10 +78,10 @@ class Tracer:
         p = self.core._poses
         return tuple(p[-1][1:4]) if p else (0.0, 0.0, 0.0)
 
-    def check(self, grid, v, w, age, now_s=0.0, evidence=None, key=None):
+    def check(self, grid, v, w, age, now_s=0.0, evidence=None, key=None, unseen=None):
         layer = self.core.safety
         sf = layer.settings
-        d = self._check(grid, v, w, age, now_s, evidence, key)
+        d = self._check(grid, v, w, age, now_s, evidence, key, unseen)
         if not d.stopped or (v == 0.0 and w == 0.0) or evidence is None:
             return d
         xy, grow, _ = evidence
@@ -95,13 +95,17 @@ class Tracer:
         reasons = [r.value for r in d.reasons]
         cells = np.zeros((0, 3))
         if "unknown_stop" in reasons:  # the never-seen cells the swing meets (as _unknown_sweep)
-            xs, ys = grid.cell_centers()
-            ii, jj = np.nonzero(grid.states == CellState.UNKNOWN)
-            px, py = xs[ii], ys[jj]
+            if unseen is None:
+                xs, ys = grid.cell_centers()
+                ii, jj = np.nonzero(grid.states == CellState.UNKNOWN)
+                px, py, h = xs[ii], ys[jj], 0.5 * grid.settings.resolution_mm
+            else:  # the map's own never-seen cells, moved exactly (what the layer reads)
+                (uxy, h) = unseen
+                px, py = uxy[:, 0], uxy[:, 1]
             near = np.hypot(px, py) < layer.r_max_mm + 200.0
             px, py = px[near], py[near]
             own = layer._contact(px, py, 0.0, v, w, u, False) == 0.0
-            s_ext = layer._contact(px, py, 0.5 * grid.settings.resolution_mm, v, w, u, False)
+            s_ext = layer._contact(px, py, h, v, w, u, False)
             bad = ~own & (s_ext <= swing_mm)
             cells = np.column_stack([px[bad], py[bad], s_ext[bad]])
         self.stops.append(dict(t=now_s, v=v, w=w, reasons=reasons, odo=self._odometry(),

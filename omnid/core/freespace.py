@@ -752,9 +752,11 @@ class FreeSpaceMap:
         The cells are the anchor grid's UNKNOWN cells, moved into the robot frame exactly (no
         resampling: :attr:`grid` is a nearest-neighbour view, in which a single never-seen cell
         may vanish and an unseen edge lies up to this half-diagonal off while the chair's
-        heading differs from the anchor's). Beyond the anchor grid is unseen as well; the
-        caller counts space off :attr:`grid` as unseen (the robot grid lies inside the anchor
-        grid)."""
+        heading differs from the anchor's). Beyond the anchor grid is unseen as well: where
+        the range reaches past it, the anchor's lattice continued there is returned too (the
+        anchor covers the robot grid's sides, not always its corners turned towards an axis,
+        and a long horizon reaches farther). An infinite range is the robot grid's farthest
+        corner."""
         if self._unknown[0] != self.version:
             a = self._anchor
             i, j = np.nonzero(a.states == CellState.UNKNOWN)
@@ -763,16 +765,44 @@ class FreeSpaceMap:
         xy = self._unknown[1]
         x, y, th = self._pose
         c, sn = math.cos(th), math.sin(th)
-        if math.isfinite(max_range_mm):  # the centres come row by row: x never decreases
-            k0 = int(np.searchsorted(xy[:, 0], x - max_range_mm, "left"))
-            k1 = int(np.searchsorted(xy[:, 0], x + max_range_mm, "right"))
-            xy = xy[k0:k1]
+        if not math.isfinite(max_range_mm):
+            g = self.settings.grid
+            max_range_mm = math.hypot(
+                max(abs(g.x_min_mm), abs(g.x_max_mm)), max(abs(g.y_min_mm), abs(g.y_max_mm))
+            )
+        # the centres come row by row: x never decreases
+        k0 = int(np.searchsorted(xy[:, 0], x - max_range_mm, "left"))
+        k1 = int(np.searchsorted(xy[:, 0], x + max_range_mm, "right"))
+        xy = xy[k0:k1]
+        st = self._anchor_settings
+        if (
+            x - max_range_mm < st.x_min_mm
+            or x + max_range_mm > st.x_max_mm
+            or y - max_range_mm < st.y_min_mm
+            or y + max_range_mm > st.y_max_mm
+        ):
+            xy = np.vstack([xy, self._beyond_anchor(x, y, max_range_mm)])
         dx, dy = xy[:, 0] - x, xy[:, 1] - y
-        if math.isfinite(max_range_mm):
-            near = dx * dx + dy * dy <= max_range_mm * max_range_mm
-            dx, dy = dx[near], dy[near]
+        near = dx * dx + dy * dy <= max_range_mm * max_range_mm
+        dx, dy = dx[near], dy[near]
         robot = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy])
-        return robot, 0.5 * self._anchor_settings.resolution_mm * math.sqrt(2.0)
+        return robot, 0.5 * st.resolution_mm * math.sqrt(2.0)
+
+    def _beyond_anchor(self, x_mm: float, y_mm: float, range_mm: float) -> NDArray[np.float64]:
+        """Centres (N, 2), anchor frame mm, of the anchor's lattice continued past its edges
+        within the square of half-side ``range_mm`` round (``x_mm``, ``y_mm``): never seen."""
+        a = self._anchor_settings
+        res = a.resolution_mm
+        nx, ny = self._anchor.states.shape
+        i = np.arange(math.floor((x_mm - range_mm - a.x_min_mm) / res),
+                      math.floor((x_mm + range_mm - a.x_min_mm) / res) + 1)  # fmt: skip
+        j = np.arange(math.floor((y_mm - range_mm - a.y_min_mm) / res),
+                      math.floor((y_mm + range_mm - a.y_min_mm) / res) + 1)  # fmt: skip
+        ii, jj = np.meshgrid(i, j, indexing="ij")
+        off = (ii < 0) | (ii >= nx) | (jj < 0) | (jj >= ny)
+        return np.column_stack(
+            [a.x_min_mm + (ii[off] + 0.5) * res, a.y_min_mm + (jj[off] + 0.5) * res]
+        )
 
     def _pixels(self, xy: NDArray[np.float64]) -> NDArray[np.float64]:
         """Anchor-frame points (N, 2) mm → continuous (col, row) pixel coordinates of cv2."""

@@ -443,3 +443,27 @@ def test_strips_are_reused_only_while_they_still_fit_the_dots():
     assert reused.nearest_blocking_distance_mm(350.0, 3000.0) == pytest.approx(
         fresh_map.nearest_blocking_distance_mm(350.0, 3000.0), abs=RES
     )
+
+
+def test_never_seen_cells_include_the_space_beyond_the_stored_grid():
+    """The stored (anchor) grid covers the robot grid's sides, not its corners turned towards
+    an axis: what lies off it is never seen, and unknown_cells says so within its range (a
+    turned, offset chair; every stored cell seen FREE)."""
+    m = FreeSpaceMap()
+    m._anchor.states[:] = CellState.FREE
+    m.move(900.0, 300.0, math.radians(37.0))  # short of re-anchoring (1000 mm)
+    assert m.pose_in_anchor[0] == pytest.approx(900.0)
+    cells, h = m.unknown_cells(5000.0)
+    g = m.grid
+    xs, ys = g.cell_centers()
+    i, j = np.nonzero(g.states == CellState.UNKNOWN)
+    off = np.column_stack([xs[i], ys[j]])
+    off = off[np.hypot(off[:, 0], off[:, 1]) <= 5000.0 - h]
+    assert len(off) > 0  # the view has off-grid corners within range
+    assert len(cells) > 0
+    d = np.sqrt(((off[:, None, :] - cells[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
+    assert d.max() <= h + 1e-6  # each lies within a returned cell
+    assert np.hypot(cells[:, 0], cells[:, 1]).max() <= 5000.0
+    # the infinite range reaches the robot grid's farthest corner
+    far, _ = m.unknown_cells()
+    assert len(far) >= len(cells)
