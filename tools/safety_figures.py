@@ -275,7 +275,7 @@ def suite(args: argparse.Namespace) -> int:
     print("| scenario | rider | runs | contacts | falls | false stops (unseen) | per 10 min "
           "| closest (median, least) | stopped at | stop → standstill | hazard → first limit "
           "(median, worst) | through | safety stops before through (s; reasons at least clearance) "
-          "| slowest allowed in it | rider's own pauses/turns in it | wall |")  # fmt: skip
+          "| slowest allowed in it | rider's own pauses/turns in it, let-goes | wall |")  # fmt: skip
     print("| --- " * 16 + "|")
     failed = False
     w_all = time.perf_counter()
@@ -317,7 +317,8 @@ def suite(args: argparse.Namespace) -> int:
                 fast = [r.min_allowed_in_opening_mm_s for r in passed
                         if not math.isnan(r.min_allowed_in_opening_mm_s)]  # fmt: skip
                 allowed = _fmt(min(fast, default=math.nan), " mm/s")
-                own = f"{sum(r.rider_own_s for r in passed):.1f} s"
+                own = (f"{sum(r.rider_own_s for r in passed):.1f} s, "
+                       f"let go {sum(r.rider_let_goes for r in passed)}")  # fmt: skip
             finite = [x for x in lim if math.isfinite(x)]
             print(
                 f"| {name} | {rider} | {len(rows)} | {contacts} | {falls} "

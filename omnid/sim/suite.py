@@ -134,7 +134,15 @@ class LinePilot(ReactiveRider):
     ``turn_off_deg``), forward otherwise (the head commands are exclusive). For the first
     ``straight_mm`` it drives straight on (after start-up the chair has seen only what lies
     ahead: a turn's tail would sweep the unseen). Centres once the axle is past
-    ``until_x_mm``."""
+    ``until_x_mm``.
+
+    Like a person, it does not push against a refusal for ever: when the chair has stood still
+    (moved < 5 mm and turned < 1.5°) for ``give_up_s`` while it asked to move, it lets go
+    (neutral for ``let_go_s``) and tries again differently — after a refused forward it backs
+    off ``back_off_mm`` (the joystick; the head has no reverse) and from then on aims closer,
+    at half its look-ahead (a near aim corrects a sideways offset that a far one leaves); after
+    a refused turn in place it first drives straight on ``straight_on_mm`` (more of the floor
+    beside it comes into view). ``let_goes`` counts them, ``let_go_log`` says when and what."""
 
     def __init__(
         self,
@@ -148,6 +156,10 @@ class LinePilot(ReactiveRider):
         turn_on_deg: float = 4.5,
         turn_off_deg: float = 2.0,
         straight_mm: float = 0.0,
+        give_up_s: float = 1.5,
+        let_go_s: float = 0.7,
+        back_off_mm: float = 100.0,
+        straight_on_mm: float = 150.0,
     ) -> None:
         super().__init__((Step("follow the line", moved(1e9), 1e6),), start_s=start_s)
         self.kind = kind
@@ -161,6 +173,74 @@ class LinePilot(ReactiveRider):
         self._turning = 0
         self.straight_mm = straight_mm
         self._origin: tuple[float, float] | None = None
+        self.give_up_s, self.let_go_s = give_up_s, let_go_s
+        self.back_off_mm, self.straight_on_mm = back_off_mm, straight_on_mm
+        self.let_goes = 0
+        self.let_go_log: list[tuple[float, str]] = []  # (t_s, what was refused) each time
+        self._still: tuple[float, float, float, float] | None = None  # pose, since (s)
+        # the try-again after a let-go: (what, until_s or pose where it began)
+        self._retry: tuple[str, float, tuple[float, float, float]] | None = None
+        self._retry_after: str | None = None  # what was refused
+
+    def _asking(self) -> str | None:
+        """What the rider asks now: "forward", "turn" or None (nothing)."""
+        if self.kind == "joystick":
+            fwd, turn = self._stick
+            return "forward" if fwd > 0.0 else ("turn" if turn != 0.0 else None)
+        return {"forward": "forward", "left": "turn", "right": "turn"}.get(self._head)
+
+    def _hold(self, head: str, stick: tuple[float, float], now_s: float) -> None:
+        if self.kind == "joystick":
+            self._stick = stick
+        elif self._head != head:
+            self._set(head, (0.0, 0.0), now_s)
+            self._head = head
+
+    def _refused(self, obs: Observation) -> bool:
+        """True once the chair has stood still for ``give_up_s`` while the rider asked."""
+        x, y, th = obs.pose
+        asking = self._asking()
+        s = self._still
+        if (
+            asking is None
+            or s is None
+            or math.hypot(x - s[0], y - s[1]) > 5.0
+            or abs(math.remainder(th - s[2], 2.0 * math.pi)) > math.radians(1.5)
+        ):
+            self._still = (x, y, th, obs.now_s)
+            return False
+        return obs.now_s - s[3] >= self.give_up_s
+
+    def _try_again(self, obs: Observation) -> bool:
+        """Play the let-go and what follows it; False once it is over."""
+        assert self._retry is not None
+        what, until_s, (x0, y0, _) = self._retry
+        x, y, _ = obs.pose
+        gone = math.hypot(x - x0, y - y0)
+        if what == "release":
+            if obs.now_s < until_s:
+                return True
+            refused = self._retry_after
+            if refused == "forward" and self.kind == "joystick" and self.back_off_mm > 0:
+                self._retry = ("back", obs.now_s + 3.0, obs.pose)
+            elif refused == "turn" and self.straight_on_mm > 0:
+                self._retry = ("straight", obs.now_s + 4.0, obs.pose)
+            else:
+                self._retry = None
+                return False
+            return self._try_again(obs)
+        done = obs.now_s >= until_s or gone >= (
+            self.back_off_mm if what == "back" else self.straight_on_mm
+        )
+        if done:
+            self._retry = None
+            self._still = None
+            return False
+        if what == "back":
+            self._hold("neutral", (-0.5, 0.0), obs.now_s)
+        else:
+            self._hold("forward", (0.6, 0.0), obs.now_s)
+        return True
 
     def observe(self, obs: Observation) -> None:
         if obs.now_s < self.start_s:
@@ -168,6 +248,19 @@ class LinePilot(ReactiveRider):
         x, y, th = obs.pose
         if self._origin is None:
             self._origin = (x, y)
+        if self._retry is not None and self._try_again(obs):
+            return
+        if self.give_up_s > 0 and x <= self.until_x_mm and self._refused(obs):
+            self.let_goes += 1
+            self._retry_after = self._asking()
+            self.let_go_log.append((obs.now_s, str(self._retry_after)))
+            if self._retry_after == "forward":
+                self.lookahead = max(250.0, 0.5 * self.lookahead)
+            self._retry = ("release", obs.now_s + self.let_go_s, obs.pose)
+            self._still = None
+            self._turning = 0
+            self._hold("neutral", (0.0, 0.0), obs.now_s)
+            return
         if math.hypot(x - self._origin[0], y - self._origin[1]) < self.straight_mm:
             # after start-up only straight ahead is seen: the rider drives on before steering
             if self.kind == "joystick":
@@ -522,6 +615,7 @@ class TrialResult:
     safety_stop_clearance_mm: float
     min_allowed_in_opening_mm_s: float  # forward speed the daemon allowed, slowest in it
     rider_own_s: float  # in it, the rider asking no travel: a pause or a turn in place
+    rider_let_goes: int  # times the rider let go of a refused request (LinePilot) and retried
     distance_m: float
     refusals: dict[str, int]  # control steps with each refusal reason
     false_stop_reasons: dict[str, int]  # control steps of false stops with each reason
@@ -846,6 +940,7 @@ def run_trial(
         len(sim.chair.bump_log), len(result.falls), events, float(false.sum()) * period, unseen,
         stop_clear_end, min_clear, to_limit, to_still, passed, min_in, n_stops, near_stops, stop_s,
         stop_reasons, stop_clear, min_allowed, own_s,
+        int(getattr(trial.rider_input, "let_goes", 0)),
         result.distance_mm / 1000.0, refusal_counts, false_reasons, wall,
     )  # fmt: skip
 

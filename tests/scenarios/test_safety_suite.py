@@ -43,7 +43,7 @@ def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refus
     doorway is passed without a safety stop at the door; a 780 mm one (the chair 700 + 2 × 25 side margin +
     the rider's aim) is never touched. (One trial per test: the suite's workers share them.)
     32 s of the trial's 60: the 900 mm door is passed by ~25 s, the chair stands before the
-    780 mm one from ~21 s."""
+    780 mm one from ~21 s (and lets go at ~23 s)."""
     trial = dataclasses.replace(SCENARIOS[f"doorway {width} mm"]("joystick", seed), duration_s=32.0)
     r = run_trial(trial)
     assert r.contacts == 0, seed
@@ -52,6 +52,11 @@ def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refus
         # for a moment, 1.7 m before it: the floor beside the tail at start-up was never seen)
         assert r.passed and r.safety_stops_at_door == 0, (seed, r.safety_stop_reasons)
         assert r.min_speed_in_opening_mm_s > 80.0 and r.min_allowed_in_opening_mm_s > 80.0
+        assert r.rider_let_goes == 0  # never refused long enough to give up
+    else:
+        # the way refused: the rider lets go of the stick after 1.5 s and backs off to try again
+        assert r.rider_let_goes >= 1
+        assert {what for _, what in trial.rider_input.let_go_log} == {"forward"}
 
 
 @pytest.mark.parametrize("kind", ["joystick", "tilt"])
