@@ -736,7 +736,8 @@ class SafetyLayer:
         only for forward moves; ``inf`` for none). Only as far as a speed cap could bind:
         ``stop_distance_mm`` plus the approach time (or braking distance) at this speed.
 
-        UNKNOWN cells of ``grid`` and everything off it count, by their centres against the
+        UNKNOWN cells of ``grid`` (or, when the last :meth:`check` was given them, the map's
+        exact never-seen cells, ``unseen``) and everything off it count, by their centres against the
         footprint itself (no margin: the margin is for the position error of things seen; the
         footprint never covers the centre of a cell never seen — the map's resolution). Cells
         whose centre lies under the chair are ignored (the map marks them FREE: the chair's own
@@ -753,10 +754,11 @@ class SafetyLayer:
         """:meth:`unknown_clearance`'s never-seen cells outside the blind band split by the face
         that meets them (as :meth:`contacts`): (the leading face's first contact, by centres
         against the footprint itself as there; the swing's first contact, each cell by its whole
-        extent — its centre grown by half a cell — against the footprint itself: the swing may
-        come as near as its stopping distance, so the footprint never enters a cell never seen;
-        one it overlaps now, its trail's edge, it enters no further). ``inf`` for none, or none
-        within the reach."""
+        extent — its centre grown by its half-diagonal, the cell however turned — against the
+        footprint itself: the swing may come as near as its stopping distance, so the footprint
+        never enters a cell never seen; one it surely overlaps now, its centre nearer than half
+        a cell — its trail's edge — by its centre, so it enters no further than the cell's
+        half). ``inf`` for none, or none within the reach."""
         _, _, lead, swing = self._unknown_sweep(grid, v_mm_s, omega_rad_s)
         return lead, swing
 
@@ -1034,13 +1036,12 @@ class SafetyLayer:
             return self._report(SafetyDecision(0.0, 0.0, 0.0, 0.0, (Reason.FAULT,)), now_s)
         if unseen is not None and evidence_key is None:
             raise ValueError("SafetyLayer.check: unseen cells need an evidence_key naming them")
+        # kept until the next check: the caches are keyed on this map content, exact cells
+        # included, so a later unknown_clearance for another request must read the same cells
         self._unseen = unseen
-        try:
-            return self._check(
-                grid, v_mm_s, omega_rad_s, perception_age_s, now_s, evidence, evidence_key
-            )
-        finally:
-            self._unseen = None
+        return self._check(
+            grid, v_mm_s, omega_rad_s, perception_age_s, now_s, evidence, evidence_key
+        )
 
     def _check(
         self,

@@ -576,6 +576,43 @@ def test_a_single_never_seen_cell_ahead_after_a_turn_in_place_is_refused():
     assert free > 0  # the resample loses some of these cells: the exact cells are needed
 
 
+def test_the_exact_never_seen_cells_stay_with_the_cached_map_between_checks():
+    """A caller asking unknown_clearance for another request between checks (the public
+    methods' use) must read the same exact cells the check was given: the caches are keyed on
+    them. After a 45° turn, one never-seen cell 800 mm ahead (some of which the resample
+    loses): the cached answer once came from the resample, and the next check answered with it
+    (the reviewer's case: 800 mm/s where the exact cells allow ~157)."""
+    from omnid.core.freespace import FreeSpaceMap
+
+    m = FreeSpaceMap()
+    m.move(0.0, 0.0, math.radians(45.0))
+    a = m._anchor
+    x, y, th = m.pose_in_anchor
+    reference = SafetyLayer(SafetySettings())
+    lost = 0
+    for lat in np.arange(-300.0, 301.0, 25.0):
+        dist = 800.0 + S.footprint_front_mm
+        i, j, _ = a.cell_index([[x + math.cos(th) * dist - math.sin(th) * lat,
+                                 y + math.sin(th) * dist + math.cos(th) * lat]])  # fmt: skip
+        a.states[:] = CellState.FREE
+        a.states[i[0], j[0]] = CellState.UNKNOWN
+        m.version += 1
+        m._grid = None
+        key = (m.version, m.pose_in_anchor)
+        args = (m.grid, 0.1, 0.0, m.blocking_evidence(), key, m.unknown_cells(4000.0))
+        layer = SafetyLayer(SafetySettings())
+        layer.check(args[0], 100.0, 0.0, *args[1:])  # caches this map content
+        layer.unknown_clearance(m.grid, 800.0, 0.0)  # another request, between checks
+        d = layer.check(args[0], 800.0, 0.0, *args[1:])
+        fresh = reference.check(args[0], 800.0, 0.0, *args[1:])
+        assert d.v_mm_s == fresh.v_mm_s and d.reasons == fresh.reasons, (lat, d, fresh)
+        lost += (
+            reference.check(m.grid, 800.0, 0.0, 0.1, 0.0, m.blocking_evidence(), key).v_mm_s
+            == 800.0
+        )
+    assert lost > 0  # some of these cells are lost by the resample: the case is exercised
+
+
 def test_a_never_seen_cell_reaching_under_the_chair_is_its_trails_edge():
     """Exactly in the robot frame, a 50 mm cell whose centre lies just outside the chair reaches
     under it (the map freed only the cells whose centre was under the chair): a swing towards
