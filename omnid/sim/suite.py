@@ -138,11 +138,13 @@ class LinePilot(ReactiveRider):
 
     Like a person, it does not push against a refusal for ever: when the chair has stood still
     (moved < 5 mm and turned < 1.5°) for ``give_up_s`` while it asked to move, it lets go
-    (neutral for ``let_go_s``) and tries again differently — after a refused forward it backs
-    off ``back_off_mm`` (the joystick; the head has no reverse) and from then on aims closer,
-    at half its look-ahead (a near aim corrects a sideways offset that a far one leaves); after
-    a refused turn in place it first drives straight on ``straight_on_mm`` (more of the floor
-    beside it comes into view). ``let_goes`` counts them, ``let_go_log`` says when and what."""
+    (neutral for ``let_go_s``) and tries again differently, as the daemon's last refusal says:
+    after a refused turn in place, or a refusal for space never seen, it first drives straight
+    on ``straight_on_mm`` (more comes into view, and a later turn's tail sweeps the chair's own
+    trail); after any other refusal it backs off ``back_off_mm`` (the joystick; the head has no
+    reverse) and from then on aims closer, at half its look-ahead (a near aim corrects a
+    sideways offset that a far one leaves). ``let_goes`` counts them, ``let_go_log`` says when
+    and what was refused (``"forward: refused joystick: obstacle_stop"``)."""
 
     def __init__(
         self,
@@ -180,7 +182,7 @@ class LinePilot(ReactiveRider):
         self._still: tuple[float, float, float, float] | None = None  # pose, since (s)
         # the try-again after a let-go: (what, until_s or pose where it began)
         self._retry: tuple[str, float, tuple[float, float, float]] | None = None
-        self._retry_after: str | None = None  # what was refused
+        self._retry_after: str | None = None  # the retry after the release
 
     def _asking(self) -> str | None:
         """What the rider asks now: "forward", "turn" or None (nothing)."""
@@ -221,10 +223,10 @@ class LinePilot(ReactiveRider):
             if obs.now_s < until_s:
                 return True
             refused = self._retry_after
-            if refused == "forward" and self.kind == "joystick" and self.back_off_mm > 0:
-                self._retry = ("back", obs.now_s + 3.0, obs.pose)
-            elif refused == "turn" and self.straight_on_mm > 0:
+            if refused == "straight" and self.straight_on_mm > 0:
                 self._retry = ("straight", obs.now_s + 4.0, obs.pose)
+            elif refused == "back" and self.kind == "joystick" and self.back_off_mm > 0:
+                self._retry = ("back", obs.now_s + 3.0, obs.pose)
             else:
                 self._retry = None
                 return False
@@ -252,9 +254,14 @@ class LinePilot(ReactiveRider):
             return
         if self.give_up_s > 0 and x <= self.until_x_mm and self._refused(obs):
             self.let_goes += 1
-            self._retry_after = self._asking()
-            self.let_go_log.append((obs.now_s, str(self._retry_after)))
-            if self._retry_after == "forward":
+            asked = self._asking()
+            said = obs.refusals[-1][1] if obs.refusals else ""
+            self.let_go_log.append((obs.now_s, f"{asked}: {said}"))
+            if asked == "turn" or "unknown_stop" in said:
+                # the way needs more seen, or the chair's own trail under its tail: straight on
+                self._retry_after = "straight"
+            else:
+                self._retry_after = "back"
                 self.lookahead = max(250.0, 0.5 * self.lookahead)
             self._retry = ("release", obs.now_s + self.let_go_s, obs.pose)
             self._still = None

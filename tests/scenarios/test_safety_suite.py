@@ -56,7 +56,7 @@ def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refus
     else:
         # the way refused: the rider lets go of the stick after 1.5 s and backs off to try again
         assert r.rider_let_goes >= 1
-        assert {what for _, what in trial.rider_input.let_go_log} == {"forward"}
+        assert all(what.startswith("forward") for _, what in trial.rider_input.let_go_log)
 
 
 @pytest.mark.parametrize("kind", ["joystick", "tilt"])
