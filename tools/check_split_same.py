@@ -96,9 +96,13 @@ def main(argv: list[str] | None = None) -> int:
     ref = np.load(args.compare)
     bad = 0
     for key in ("off", "on"):
-        worst, count, n_img = 0.0, 0, 0
+        worst, rest, count, n_img = 0.0, 0.0, 0, 0
         for name, got in dots.items():
             if not name.startswith(key + "_"):
+                continue
+            if name not in ref:
+                print(f"{name}: not in the reference {args.compare}")
+                bad += 1
                 continue
             want = ref[name]
             n_img += 1
@@ -108,10 +112,12 @@ def main(argv: list[str] | None = None) -> int:
                 bad += 1
                 continue
             worst = max(worst, float(np.abs(got[:, :2] - want[:, :2]).max(initial=0.0)))
+            rest = max(rest, float(np.abs(got[:, 2:] - want[:, 2:]).max(initial=0.0)))
         print(
             f"split {key}: {n_img} images, {count} dots, largest centre difference {worst:.1e} px"
+            f" (the other columns: {rest:.1e})"
         )
-        bad += worst > args.tol_px
+        bad += worst > args.tol_px or rest > args.tol_px
     return 1 if bad else 0
 
 

@@ -98,15 +98,19 @@ class Tracer:
             if unseen is None:
                 xs, ys = grid.cell_centers()
                 ii, jj = np.nonzero(grid.states == CellState.UNKNOWN)
-                px, py, h = xs[ii], ys[jj], 0.5 * grid.settings.resolution_mm
+                px, py = xs[ii], ys[jj]
+                h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
             else:  # the map's own never-seen cells, moved exactly (what the layer reads)
                 (uxy, h) = unseen
                 px, py = uxy[:, 0], uxy[:, 1]
             near = np.hypot(px, py) < layer.r_max_mm + 200.0
             px, py = px[near], py[near]
-            own = layer._contact(px, py, 0.0, v, w, u, False) == 0.0
             s_ext = layer._contact(px, py, h, v, w, u, False)
-            bad = ~own & (s_ext <= swing_mm)
+            # a cell the chair surely overlaps now (its trail's edge) is met by its centre
+            edge = layer._rect_distance(px, py) < h / math.sqrt(2.0)
+            centre = layer._contact(px[edge], py[edge], 0.0, v, w, u, False)
+            s_ext[edge] = np.where(centre == 0.0, math.inf, centre)  # under it: its trail
+            bad = s_ext <= swing_mm
             cells = np.column_stack([px[bad], py[bad], s_ext[bad]])
         self.stops.append(dict(t=now_s, v=v, w=w, reasons=reasons, odo=self._odometry(),
                                xy=xy[hit], grow=grow[hit], s=s_mm[hit], lead=lead[hit],

@@ -464,6 +464,10 @@ def test_never_seen_cells_include_the_space_beyond_the_stored_grid():
     d = np.sqrt(((off[:, None, :] - cells[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
     assert d.max() <= h + 1e-6  # each lies within a returned cell
     assert np.hypot(cells[:, 0], cells[:, 1]).max() <= 5000.0
-    # the infinite range reaches the robot grid's farthest corner
+    # the infinite range reaches the robot grid's farthest corner: every never-seen cell of
+    # the robot-frame view, however far, lies within a returned cell
     far, _ = m.unknown_cells()
-    assert len(far) >= len(cells)
+    every = np.column_stack([xs[i], ys[j]])
+    assert np.hypot(every[:, 0], every[:, 1]).max() > 5000.0 - h  # beyond the range above
+    d = np.array([np.hypot(*(far - p).T).min() for p in every])
+    assert d.max() <= h + 1e-6
