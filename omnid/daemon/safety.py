@@ -432,6 +432,7 @@ class SafetyLayer:
         self._unknown: dict[tuple[float, float], tuple[float, float, float, float]] = {}
         # the never-seen cells given to :meth:`check` (None: the grid's UNKNOWN cells)
         self._unseen: Unseen | None = None
+        self._unseen_key: object = None  # the evidence key the last check named them by
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
         ) = None
@@ -655,6 +656,8 @@ class SafetyLayer:
     def _use_map(self, grid: OccupancyGrid, evidence: Evidence | None, key: object) -> None:
         """Make the caches belong to this map content (uncacheable: evidence without a key)."""
         map_key: object
+        if self._unseen is not None and key != self._unseen_key:
+            self._unseen = None  # the exact cells belong to the map content their key names
         if evidence is not None and key is None:
             map_key = None
         else:
@@ -1038,7 +1041,7 @@ class SafetyLayer:
             raise ValueError("SafetyLayer.check: unseen cells need an evidence_key naming them")
         # kept until the next check: the caches are keyed on this map content, exact cells
         # included, so a later unknown_clearance for another request must read the same cells
-        self._unseen = unseen
+        self._unseen, self._unseen_key = unseen, evidence_key
         return self._check(
             grid, v_mm_s, omega_rad_s, perception_age_s, now_s, evidence, evidence_key
         )

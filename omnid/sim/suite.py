@@ -143,8 +143,11 @@ class LinePilot(ReactiveRider):
     on ``straight_on_mm`` (more comes into view, and a later turn's tail sweeps the chair's own
     trail); after any other refusal it backs off ``back_off_mm`` (the joystick; the head has no
     reverse) and from then on aims closer, at half its look-ahead (a near aim corrects a
-    sideways offset that a far one leaves). ``let_goes`` counts them, ``let_go_log`` says when
-    and what was refused (``"forward: refused joystick: obstacle_stop"``)."""
+    sideways offset that a far one leaves; once: repeated let-goes keep that aim).
+    ``let_goes`` counts them; ``let_go_log`` says when, what was asked and refused
+    (``"forward: refused joystick: obstacle_stop"``, the refusal recorded since the chair began
+    to stand, or up to 1 s before: it brakes after it) and the retry (``"straight"``,
+    ``"back"``, ``"none"``: the head, refused forward, only lets go and aims closer)."""
 
     def __init__(
         self,
@@ -178,7 +181,9 @@ class LinePilot(ReactiveRider):
         self.give_up_s, self.let_go_s = give_up_s, let_go_s
         self.back_off_mm, self.straight_on_mm = back_off_mm, straight_on_mm
         self.let_goes = 0
-        self.let_go_log: list[tuple[float, str]] = []  # (t_s, what was refused) each time
+        # each let-go: (t_s, what the rider asked and the daemon's refusal, the retry chosen)
+        self.let_go_log: list[tuple[float, str, str]] = []
+        self._aim_mm = lookahead_mm  # the look-ahead it started with
         self._still: tuple[float, float, float, float] | None = None  # pose, since (s)
         # the try-again after a let-go: (what, until_s or pose where it began)
         self._retry: tuple[str, float, tuple[float, float, float]] | None = None
@@ -219,6 +224,9 @@ class LinePilot(ReactiveRider):
         what, until_s, (x0, y0, _) = self._retry
         x, y, _ = obs.pose
         gone = math.hypot(x - x0, y - y0)
+        if x > self.until_x_mm:  # through: the line's end takes over
+            self._retry = None
+            return False
         if what == "release":
             if obs.now_s < until_s:
                 return True
@@ -255,14 +263,18 @@ class LinePilot(ReactiveRider):
         if self.give_up_s > 0 and x <= self.until_x_mm and self._refused(obs):
             self.let_goes += 1
             asked = self._asking()
-            said = obs.refusals[-1][1] if obs.refusals else ""
-            self.let_go_log.append((obs.now_s, f"{asked}: {said}"))
+            assert self._still is not None
+            # the refusal that stopped it (recorded while it braked, up to a second before it
+            # stood), not an older one
+            since = self._still[3] - 1.0
+            said = next((text for t, text in reversed(obs.refusals) if t >= since), "")
             if asked == "turn" or "unknown_stop" in said:
                 # the way needs more seen, or the chair's own trail under its tail: straight on
                 self._retry_after = "straight"
             else:
-                self._retry_after = "back"
-                self.lookahead = max(250.0, 0.5 * self.lookahead)
+                self._retry_after = "back" if self.kind == "joystick" else "none"
+                self.lookahead = min(self.lookahead, 0.5 * self._aim_mm)
+            self.let_go_log.append((obs.now_s, f"{asked}: {said}", self._retry_after))
             self._retry = ("release", obs.now_s + self.let_go_s, obs.pose)
             self._still = None
             self._turning = 0

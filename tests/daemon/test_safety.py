@@ -611,6 +611,19 @@ def test_the_exact_never_seen_cells_stay_with_the_cached_map_between_checks():
             == 800.0
         )
     assert lost > 0  # some of these cells are lost by the resample: the case is exercised
+    # and they stay with their map only: a sweep of another map (a bare grid with a cell never
+    # seen in the band ahead) reads that map's own cells, not the last check's
+    other = OccupancyGrid(GridSettings(resolution_mm=50.0))
+    other.states[:] = CellState.FREE
+    i, j, _ = other.cell_index([[S.footprint_front_mm + 100.0, 0.0]])
+    other.states[i, j] = CellState.UNKNOWN
+    layer.sweep(other, 600.0, 0.0)
+    fresh_layer = SafetyLayer(SafetySettings())
+    fresh_layer.sweep(other, 600.0, 0.0)
+    assert layer.unknown_clearance(other, 600.0, 0.0) == fresh_layer.unknown_clearance(
+        other, 600.0, 0.0
+    )
+    assert fresh_layer.unknown_clearance(other, 600.0, 0.0)[1] < math.inf
 
 
 def test_a_never_seen_cell_reaching_under_the_chair_is_its_trails_edge():
