@@ -185,9 +185,9 @@ class LinePilot(ReactiveRider):
         self.let_go_log: list[tuple[float, str, str]] = []
         self._aim_mm = lookahead_mm  # the look-ahead it started with
         self._still: tuple[float, float, float, float] | None = None  # pose, since (s)
-        # the try-again after a let-go: (what, until_s or pose where it began)
-        self._retry: tuple[str, float, tuple[float, float, float]] | None = None
-        self._retry_after: str | None = None  # the retry after the release
+        # the try-again after a let-go: (phase, until_s, pose where it began, the retry that
+        # follows the release: "straight", "back" or "none")
+        self._retry: tuple[str, float, tuple[float, float, float], str] | None = None
 
     def _asking(self) -> str | None:
         """What the rider asks now: "forward", "turn" or None (nothing)."""
@@ -197,6 +197,7 @@ class LinePilot(ReactiveRider):
         return {"forward": "forward", "left": "turn", "right": "turn"}.get(self._head)
 
     def _hold(self, head: str, stick: tuple[float, float], now_s: float) -> None:
+        """Ask ``stick`` (the joystick) or move the head to ``head`` (the tilt rider)."""
         if self.kind == "joystick":
             self._stick = stick
         elif self._head != head:
@@ -221,7 +222,7 @@ class LinePilot(ReactiveRider):
     def _try_again(self, obs: Observation) -> bool:
         """Play the let-go and what follows it; False once it is over."""
         assert self._retry is not None
-        what, until_s, (x0, y0, _) = self._retry
+        what, until_s, (x0, y0, _), after = self._retry
         x, y, _ = obs.pose
         gone = math.hypot(x - x0, y - y0)
         if x > self.until_x_mm:  # through: the line's end takes over
@@ -230,11 +231,10 @@ class LinePilot(ReactiveRider):
         if what == "release":
             if obs.now_s < until_s:
                 return True
-            refused = self._retry_after
-            if refused == "straight" and self.straight_on_mm > 0:
-                self._retry = ("straight", obs.now_s + 4.0, obs.pose)
-            elif refused == "back" and self.kind == "joystick" and self.back_off_mm > 0:
-                self._retry = ("back", obs.now_s + 3.0, obs.pose)
+            if after == "straight" and self.straight_on_mm > 0:
+                self._retry = ("straight", obs.now_s + 4.0, obs.pose, after)
+            elif after == "back" and self.kind == "joystick" and self.back_off_mm > 0:
+                self._retry = ("back", obs.now_s + 3.0, obs.pose, after)
             else:
                 self._retry = None
                 return False
@@ -270,23 +270,19 @@ class LinePilot(ReactiveRider):
             said = next((text for t, text in reversed(obs.refusals) if t >= since), "")
             if asked == "turn" or "unknown_stop" in said:
                 # the way needs more seen, or the chair's own trail under its tail: straight on
-                self._retry_after = "straight"
+                after = "straight"
             else:
-                self._retry_after = "back" if self.kind == "joystick" else "none"
+                after = "back" if self.kind == "joystick" else "none"
                 self.lookahead = min(self.lookahead, 0.5 * self._aim_mm)
-            self.let_go_log.append((obs.now_s, f"{asked}: {said}", self._retry_after))
-            self._retry = ("release", obs.now_s + self.let_go_s, obs.pose)
+            self.let_go_log.append((obs.now_s, f"{asked}: {said}", after))
+            self._retry = ("release", obs.now_s + self.let_go_s, obs.pose, after)
             self._still = None
             self._turning = 0
             self._hold("neutral", (0.0, 0.0), obs.now_s)
             return
         if math.hypot(x - self._origin[0], y - self._origin[1]) < self.straight_mm:
             # after start-up only straight ahead is seen: the rider drives on before steering
-            if self.kind == "joystick":
-                self._stick = (self.forward, 0.0)
-            elif self._head != "forward":
-                self._set("forward", (0.0, 0.0), obs.now_s)
-                self._head = "forward"
+            self._hold("forward", (self.forward, 0.0), obs.now_s)
             return
         if x > self.until_x_mm:
             if self._head != "neutral" or self._stick != (0.0, 0.0):
@@ -302,18 +298,13 @@ class LinePilot(ReactiveRider):
             # a hand pushes a small correction past the stick's dead zone (0.1)
             turn = math.copysign(min(1.0, 0.12 + 3.0 * abs(err)), err) if abs(err) > 0.01 else 0.0
             fwd = max(0.35, self.forward * (1.0 - 1.2 * abs(err)))
-            stick = (fwd, turn)
-            if stick != self._stick:
-                self._stick = stick
+            self._hold("forward", (fwd, turn), obs.now_s)
             return
         if self._turning == 0 and abs(err) > self.on:
             self._turning = 1 if err > 0 else -1
         elif self._turning != 0 and abs(err) < self.off:
             self._turning = 0
-        head = {1: "left", -1: "right", 0: "forward"}[self._turning]
-        if head != self._head:
-            self._set(head, (0.0, 0.0), obs.now_s)
-            self._head = head
+        self._hold({1: "left", -1: "right", 0: "forward"}[self._turning], (0.0, 0.0), obs.now_s)
 
 
 def _straight(kind: RiderKind, hold_s: float, start_s: float = 0.5) -> Any:
