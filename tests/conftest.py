@@ -2,10 +2,23 @@
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import os
 
-from omnid.core.geometry import StereoRig
+# One thread per test process, set before numpy and OpenCV load: the suite runs one pytest-xdist
+# worker per core, and each library's own pool on top (OpenBLAS spin-waits, OpenCV splits every
+# remap) cost a quarter more CPU for the same results. Processes the tests start inherit it.
+for _var in (
+    "OPENBLAS_NUM_THREADS",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "OPENCV_FOR_THREADS_NUM",
+):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from omnid.core.geometry import StereoRig  # noqa: E402
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
