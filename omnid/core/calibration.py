@@ -941,9 +941,11 @@ def _beams_off_floor(
 def _detect(
     capture: StereoCapture, detection: DetectionParams | None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    # every blend of two spots split: a doubled beam becomes two beams of the model (and
+    # perception splits blends near their tracks only, pipeline.split_regions)
     return (
-        detect_dots(capture.mask1, capture.base1, "best", detection),
-        detect_dots(capture.mask2, capture.base2, "best", detection),
+        detect_dots(capture.mask1, capture.base1, "best", detection, True),
+        detect_dots(capture.mask2, capture.base2, "best", detection, True),
     )
 
 

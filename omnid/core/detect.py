@@ -581,7 +581,7 @@ def _detect_best(
     base: NDArray,
     p: DetectionParams,
     learned_shape: bool = False,
-    split_blends: bool = False,
+    split_blends: bool | NDArray[np.bool_] = False,
 ) -> NDArray[np.float64]:
     """Sub-pixel dot centres.
 
@@ -735,13 +735,23 @@ def _detect_best(
         cand = cand[ok]
     if len(rows) == 0:
         return _empty()
-    # Experimental (not the default; docs/benchmarks/rigs.md): two beams closer than the
-    # smoothing resolves (a doubled beam) are one maximum — split where two spots explain the
-    # light better than any one spot (:func:`_split_blends`).
+    # Two beams closer than the smoothing resolves (a doubled beam) are one maximum — split
+    # where two spots explain the light better than any one spot (:func:`_split_blends`):
+    # everywhere (``split_blends`` True: calibration), or where the image's boolean mask
+    # ``split_blends`` says (perception: near the tracks of the laser's doubled beams).
     pair = fixed = np.zeros(len(rows), dtype=bool)
     n_blobs = len(rows)
     blob_r, blob_c, blob_rows, blob_cols = r, c, rows, cols  # (as one dot: the pull's view)
-    if split_blends:
+    region = None
+    if not isinstance(split_blends, bool):
+        region = np.asarray(split_blends, dtype=bool)
+        if region.shape != (h_img, w_img):
+            raise InputError(
+                f"split region is {region.shape[1]}x{region.shape[0]} px, "
+                f"the image {w_img}x{h_img} px"
+            )
+        region = region[r0:r1, c0:c1]
+    if split_blends is True or (region is not None and region[rows, cols].any()):
         rows, cols, centre, r, c, clipped, pair, fixed = _split_blends(
             d,
             saturated,
@@ -751,6 +761,7 @@ def _detect_best(
             sigma,
             p.best_relative_peak,
             noise,
+            region,
         )
     fixed_r, fixed_c = r[fixed], c[fixed]
     pair_r, pair_c = r[pair], c[pair]
@@ -971,6 +982,7 @@ def _split_blends(
     sigma: float,
     relative_peak: float,
     noise: float,
+    region: NDArray[np.bool_] | None = None,
 ) -> tuple[
     NDArray[np.intp],
     NDArray[np.intp],
@@ -1005,7 +1017,8 @@ def _split_blends(
 
     ``candidates``: (rows, cols, smoothed peak, sub-pixel row, col, clipped) as
     :func:`_take` keeps them; ``curvature``: their (mean, larger principal) variances from
-    :func:`_log_quadratic` of ``sm`` (every candidate's quadratic a maximum)."""
+    :func:`_log_quadratic` of ``sm`` (every candidate's quadratic a maximum); ``region``
+    (``sm``'s shape): only candidates whose maximum lies in it are tested (None: all)."""
     rows, cols, centre, r, c, clipped = candidates
     n = len(rows)
     none = np.zeros(n, dtype=bool)
@@ -1021,7 +1034,10 @@ def _split_blends(
     # (the raw curvatures first: a neighbour only ever adds elongation to them)
     mean_var, max_var = curvature
     min_var = 1.0 / np.maximum(2.0 / mean_var - 1.0 / max_var, 1e-12)
-    ask = np.flatnonzero(max_var >= elongation * min_var)
+    elongated = max_var >= elongation * min_var
+    if region is not None:
+        elongated &= region[rows, cols]
+    ask = np.flatnonzero(elongated)
     if len(ask) == 0:
         return rows, cols, centre, r, c, clipped, none, none
     # the neighbours whose light reaches a candidate's test window (and its 3x3 curvature)
@@ -1475,18 +1491,27 @@ def detect_dots(
     base: NDArray,
     method: DetectionMethod = "best",
     params: DetectionParams | None = None,
+    split_where: bool | NDArray[np.bool_] = False,
 ) -> NDArray[np.float64]:
     """Dot centres (N, 3) as (row_px, col_px, strength) in one camera's mask/base pair.
 
+    ``split_where`` (``best`` only): where a maximum that two spots explain better than one —
+    two beams closer than the smoothing resolves, a doubled beam — is split into two dots:
+    nowhere (False), everywhere (True: what calibration learns the beams from; it costs
+    1.4–2.6x the detection), or in the pixels an image-shaped boolean mask marks (perception:
+    near the image tracks of the beams calibration found doubled,
+    :func:`omnid.core.pipeline.split_regions`).
+
     Raises :class:`~omnid.errors.InputError` for arrays that are not images of one shape and
-    dtype, and ``ValueError`` for an unknown method. No dots (or an empty image) → (0, 3).
+    dtype (or a ``split_where`` mask of another shape), and ``ValueError`` for an unknown
+    method. No dots (or an empty image) → (0, 3).
     """
     p = params or _DEFAULT_PARAMS
     m, b = _check_pair(mask, base)
     if m.shape[0] == 0 or m.shape[1] == 0:
         return _empty()
     if method == "best":
-        return _detect_best(m, b, p)
+        return _detect_best(m, b, p, split_blends=split_where)
     if method == "thesis":
         return _detect_thesis(m, b, p)
     raise ValueError(f"unknown detection method {method!r} (known: thesis, best)")

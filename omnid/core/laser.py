@@ -27,6 +27,12 @@ SOURCE_PRIOR_MM = (0.0, 0.0, 0.0)
 SOURCE_PRIOR_SIGMA_MM = (40.0, 40.0, 100.0)
 
 
+#: A beam is doubled (:meth:`LaserModel.doubled`) when another beam's floor dot lies nearer than
+#: this share of the pattern's typical spacing: the random gratings' twins lie 0.05–0.35 of it
+#: apart, regular neighbours (the pitch, the dense laser's too) at 0.7 or more.
+DOUBLED_SHARE = 0.5
+
+
 @dataclass(frozen=True)
 class LaserModel:
     """The laser as the installer's captures show it: a source O and the floor dot of each beam.
@@ -116,6 +122,29 @@ class LaserModel:
         s, c = self.slopes()
         z = 1.0 / inv_depth
         return np.column_stack([s[beam] * z[:, None] + c[beam], z])
+
+    def doubled(self, share: float = DOUBLED_SHARE) -> NDArray[np.bool_]:
+        """(K,) which beams have a twin: another beam whose floor dot lies nearer than
+        ``share`` of the pattern's typical spacing (the median of every beam's distance to its
+        nearest other beam, on the floor, mm). A grating's beams are spaced by its pitch; a
+        doubled beam (a flaw of the grating, or two sources) is a pair far closer, which the
+        detector sees as one maximum wherever its spots are larger than half their distance."""
+        p = self.floor_mm[:, :2]
+        k = len(p)
+        out = np.zeros(k, dtype=bool)
+        if k < 3:
+            return out
+        nearest = np.full(k, np.inf)
+        other = np.full(k, -1, dtype=np.intp)
+        for a in range(0, k, 256):  # (K x 256 distances at a time)
+            d = np.hypot(
+                p[a : a + 256, None, 0] - p[None, :, 0], p[a : a + 256, None, 1] - p[None, :, 1]
+            )
+            d[np.arange(len(d)), np.arange(a, a + len(d))] = np.inf
+            other[a : a + 256] = np.argmin(d, axis=1)
+            nearest[a : a + 256] = d[np.arange(len(d)), other[a : a + 256]]
+        out = nearest < share * float(np.median(nearest))
+        return np.asarray(out, dtype=bool)
 
     def with_source(
         self, source_mm: tuple[float, float, float], sigma_mm: tuple[float, float, float]

@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -33,6 +34,54 @@ from omnid.core.matching import (
 from omnid.core.types import PointCloud, StereoCapture
 from omnid.errors import InputError
 
+#: Half the width of a doubled beam's image track in :func:`split_regions`, px: its two dots
+#: lie either side of the blend's maximum (the random gratings' twins ≤ 3.5 px apart on the
+#: floor), and the track is known to the calibration's error away from the floor.
+SPLIT_TRACK_HALF_PX = 4
+
+
+def split_regions(calib: Calibration) -> tuple[NDArray[np.bool_], NDArray[np.bool_]] | None:
+    """Per camera, the pixels where the detector splits a blend of two spots
+    (:func:`~omnid.core.detect.detect_dots`' ``split_where``): within
+    :data:`SPLIT_TRACK_HALF_PX` of the image track of a beam the laser model holds as doubled
+    (:meth:`~omnid.core.laser.LaserModel.doubled`) between ``min_depth`` 250 mm and 400 mm
+    under the floor. None when no beam is doubled. Such twins are one maximum for the
+    detector; splitting only there costs what a few blobs cost, where splitting everywhere
+    costs 1.4–2.6x the detection. Cached per calibration."""
+    laser = calib.laser
+    if laser is None:
+        return None
+    key = (id(laser), calib.rig)
+    hit = _SPLIT_CACHE.get(key)
+    if hit is not None and hit[0] is laser:
+        return hit[1]
+    beams = np.flatnonzero(laser.doubled())
+    out: tuple[NDArray[np.bool_], NDArray[np.bool_]] | None = None
+    if len(beams):
+        h = calib.floor_depth_mm
+        u = np.linspace(1.0 / 250.0, 1.0 / (h + 400.0), 48)
+        pts = laser.point_at(np.repeat(beams, len(u)), np.tile(u, len(beams)))
+        px = calib.rig.project(pts).reshape(len(beams), len(u), 4)
+        masks = []
+        for cam, shape in ((0, calib.rig.cam1.image_shape), (1, calib.rig.cam2.image_shape)):
+            img = np.zeros(tuple(shape), dtype=np.uint8)
+            for track in px[:, :, 2 * cam : 2 * cam + 2]:
+                ok = np.isfinite(track).all(axis=1)
+                xy = np.rint(track[ok][:, ::-1] * 16.0).astype(np.int32)  # (col, row), 4 bits
+                if len(xy) >= 2:
+                    cv2.polylines(img, [xy], False, 1, 2 * SPLIT_TRACK_HALF_PX + 1, cv2.LINE_8, 4)
+            masks.append(img.astype(bool))
+        out = (masks[0], masks[1])
+    if len(_SPLIT_CACHE) > 8:
+        _SPLIT_CACHE.clear()
+    _SPLIT_CACHE[key] = (laser, out)
+    return out
+
+
+_SPLIT_CACHE: dict[
+    tuple[int, Any], tuple[LaserModel, tuple[NDArray[np.bool_], NDArray[np.bool_]] | None]
+] = {}
+
 
 @dataclass(frozen=True)
 class PerceptionSettings:
@@ -48,6 +97,9 @@ class PerceptionSettings:
     # 1/√12 ≈ 0.29 px (its centres are whole pixels).
     pixel_sigma_px: float | None = None
     classify: Any = None  # omnid.core.classify.ClassifySettings, or None for its defaults
+    # ``best``: split blends of two spots near the tracks of the beams the laser model holds
+    # as doubled (:func:`split_regions`); False: never (for comparison)
+    split_doubled: bool = True
     health: HealthSettings = field(default_factory=lambda: HealthSettings())
     source: SourceSettings = field(default_factory=lambda: SourceSettings())
 
@@ -204,8 +256,14 @@ def perceive_detailed(
     if method == "best" and calib.laser is None:
         raise InputError("the calibration has no laser model: recalibrate with `omnid calibrate`")
     det = s.detection_method or method
-    d1 = detect_dots(capture.mask1, capture.base1, det, s.detection)
-    d2 = detect_dots(capture.mask2, capture.base2, det, s.detection)
+    split1: bool | NDArray[np.bool_] = False
+    split2: bool | NDArray[np.bool_] = False
+    if det == "best" and s.split_doubled and calib.laser is not None:
+        regions = split_regions(calib)
+        if regions is not None:
+            split1, split2 = regions
+    d1 = detect_dots(capture.mask1, capture.base1, det, s.detection, split1)
+    d2 = detect_dots(capture.mask2, capture.base2, det, s.detection, split2)
     H = calib.floor_depth_mm
     health = None
     source_estimate = None

@@ -84,6 +84,45 @@ def test_best_knows_which_beam_each_pair_is(installed) -> None:
     assert right >= 0.97 * total  # the rest: doubled beams merged into one dot
 
 
+def test_doubled_beams_are_learned_and_their_blends_split_over_random_rigs(installed) -> None:
+    """A doubled beam (two beams a fraction of the pattern's pitch apart) is one maximum for
+    the detector where its spots are larger than half their distance. Calibration splits every
+    blend, so the model holds both beams and knows them doubled; perception splits blends near
+    their tracks only. Over the 10 rigs' empty floors (two captures each): the twins' dots that
+    the images separate (≥ MERGED_PX in both) are paired right far more often than with no
+    split, and the split costs no dot paired wrong."""
+    from omnid.core.pipeline import PerceptionSettings, perceive, split_regions
+
+    right = {True: 0, False: 0}
+    wrong = {True: 0, False: 0}
+    total = learned = 0
+    for case, calib in installed:
+        twin = case.laser.rays().twin
+        if split_regions(calib) is not None:  # type: ignore[arg-type]
+            learned += 1
+        for seed in (11, 12):
+            hits, cap = ev.capture(case, World(), seed=seed)
+            px = case.rig.project(hits.xyz)
+            b = np.flatnonzero(twin >= 0)
+            t = twin[b]
+            sep1 = np.hypot(*(px[b, :2] - px[t, :2]).T)
+            sep2 = np.hypot(*(px[b, 2:] - px[t, 2:]).T)
+            ok = hits.visible[b] & hits.visible[t]
+            ok &= (sep1 >= ev.MERGED_PX) & (sep2 >= ev.MERGED_PX)
+            dots = np.unique(np.concatenate([b[ok], t[ok]]))
+            total += len(dots)
+            for split in (True, False):
+                settings = PerceptionSettings(split_doubled=split)
+                cloud = perceive(cap, calib, "best", settings)  # type: ignore[arg-type]
+                got = ev._truth_index(cloud.pixels, px[dots])
+                right[split] += len(set(got[got >= 0].tolist()))
+                wrong[split] += ev.score_cloud(case, "floor", hits, cloud, 0.0).wrong
+    assert learned >= 5 and total >= 30
+    assert right[True] >= 0.7 * total
+    assert right[True] >= right[False] + 0.25 * total
+    assert wrong[True] <= wrong[False]
+
+
 def test_degenerate_ideal_lattice_floor() -> None:
     """The special case: a regular slope lattice from a source exactly at the frame origin
     (tracks are image rows; the one-step lattice ambiguity is back). The empty floor is still
