@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 
 from omnid.config import Settings, require, setting
 from omnid.core import spotfit, spotshape
-from omnid.core.arrays import clip, median, quartiles
+from omnid.core.arrays import clip, kth_smallest, median, quartiles
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -341,7 +341,7 @@ def _flicker_gain(d: NDArray, mask_gray: NDArray, noise: float) -> float:
     m_lit = m[lit]
     ratio = d[::step][lit] / m_lit
     mid = len(ratio) // 2
-    gain = float(np.partition(ratio, mid)[mid])
+    gain = float(kth_smallest(ratio, mid))
     return gain if abs(gain) * float(m_lit.mean()) >= 2.0 * noise else 0.0
 
 
