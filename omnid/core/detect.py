@@ -428,8 +428,7 @@ def _background_half(
     # Noise of pyrDown's output: its 5x5 kernel's squared weights sum to (35/128)².
     lim = 2.0 * max(noise * 35.0 / 128.0, 0.25)
     rest = np.subtract(small, low, dtype=np.float32)
-    np.maximum(rest, -lim, out=rest)
-    np.minimum(rest, lim, out=rest)
+    np.clip(rest, -lim, lim, out=rest)  # (one SIMD pass: ~5x np.maximum's with a scalar)
     k_bias = 2 * (_BIAS_RADIUS_PX // 2) + 1
     bias = cv2.blur(rest, (k_bias, k_bias))
     return np.add(low, bias, out=bias, dtype=np.float32)
@@ -647,7 +646,9 @@ def _detect_best(
     # The laser only adds light: a background below zero is the scene's change (a moved
     # mask's edge, something gone), not a floor to measure dots from — above it its own edge
     # would stand out like a row of dots.
-    np.maximum(bg_half, 0.0, out=bg_half)
+    # (np.maximum(bg_half, 0.0) to the bit, ~2x faster: the clip keeps −0.0, + 0.0 makes it 0.0)
+    np.clip(bg_half, 0.0, np.inf, out=bg_half)
+    bg_half += 0.0
     if min(h_img, w_img) < _MIN_PYRAMID_PX:
         r0, r1, c0, c1 = 0, h_img, 0, w_img
     else:
@@ -1218,8 +1219,12 @@ def _bilinear(img: NDArray, r: NDArray, c: NDArray) -> NDArray:
     c = clip(c, 0.0, img.shape[1] - 1.001)
     r0, c0 = r.astype(np.intp), c.astype(np.intp)
     fr, fc = r - r0, c - c0
-    top = img[r0, c0] * (1.0 - fc) + img[r0, c0 + 1] * fc
-    bottom = img[r0 + 1, c0] * (1.0 - fc) + img[r0 + 1, c0 + 1] * fc
+    w = img.shape[1]
+    flat = np.ascontiguousarray(img).ravel()  # (gathers of flat indices: ~2x 2-D indexing)
+    at = r0 * w + c0
+    top = np.take(flat, at) * (1.0 - fc) + np.take(flat, at + 1) * fc
+    at += w
+    bottom = np.take(flat, at) * (1.0 - fc) + np.take(flat, at + 1) * fc
     return np.asarray(top * (1.0 - fr) + bottom * fr)
 
 
