@@ -154,9 +154,11 @@ def _expand_ranges(
     cnt = np.maximum(hi - lo, 0)
     ends = np.cumsum(cnt)
     owner = np.repeat(np.arange(len(lo)), cnt)
-    # position = its rank among all + (lo − the owner's first rank): one repeat, not two
-    pos = np.arange(int(ends[-1]) if len(ends) else 0) + np.repeat(lo - (ends - cnt), cnt)
-    return owner, pos.astype(np.intp, copy=False)
+    # position = its rank among all + (lo − the owner's first rank), in place: each fresh
+    # array of ~10⁴ costs page faults besides its pass
+    pos = np.arange(int(ends[-1]) if len(ends) else 0, dtype=np.intp)
+    pos += np.take(lo - (ends - cnt), owner)
+    return owner, pos
 
 
 def _candidates_by_row(
@@ -512,11 +514,18 @@ def _beams_near(
     row = band * n_cols
     # one run per (query, band): the cells c_lo … c_hi lie next to each other in cell order
     own, pos = _expand_ranges(tr.cell_start[row + c_lo[qb]], tr.cell_start[row + c_hi[qb] + 1])
-    q = qb[own]
-    dx = tr.cell_x_mm[pos] - x[q]
-    dy = tr.cell_y_mm[pos] - y[q]
-    rq = radius[q]
-    ok = dx * dx + dy * dy <= rq * rq
+    q = np.take(qb, own)
+    # dx² + dy² <= r², in place (fewer fresh arrays of ~10⁴: each costs page faults)
+    dx = np.take(tr.cell_x_mm, pos)
+    dx -= np.take(x, q)
+    dy = np.take(tr.cell_y_mm, pos)
+    dy -= np.take(y, q)
+    dx *= dx
+    dy *= dy
+    dx += dy
+    rq = np.take(radius, q)
+    rq *= rq
+    ok = dx <= rq
     q, k = q.compress(ok), np.take(tr.cell_order, pos.compress(ok))
     # (nearly sorted already: the merge sort runs through it)
     order = np.argsort(q * len(tr.x_rank) + tr.x_rank[k], kind="stable")
@@ -580,15 +589,19 @@ def match_triples(
     if len(pq) == 0:
         return _empty_triples()
     # 3. each triple's least-squares depth along its beam and residual (3 degrees of freedom)
-    mm = np.take(m, pq, axis=1)
-    al, be = np.take(tr.alpha, k, axis=1), np.take(tr.beta, k, axis=1)
-    bb = np.sum(be * be, axis=0)
+    # (in place, one scratch array: each fresh (4, triples) array costs page faults besides
+    # its pass)
+    r = np.take(m, pq, axis=1)
+    r -= np.take(tr.alpha, k, axis=1)  # m − α
+    be = np.take(tr.beta, k, axis=1)
+    scratch = np.multiply(be, be)
+    bb = np.sum(scratch, axis=0)
     u_lo = 1.0 / (H + s.dropoff_depth_mm)
     u_hi = 1.0 / max(s.near_depth_mm, o[2] + 1.0)
-    u = clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
-    r = mm - al - be * u
+    u = clip(np.sum(np.multiply(r, be, out=scratch), axis=0) / bb, u_lo, u_hi)
+    r -= np.multiply(be, u, out=scratch)  # the residual m − α − β·u
     sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)
-    chi2 = np.sum(r * r, axis=0) / (sig_t * sig_t)
+    chi2 = np.sum(np.multiply(r, r, out=scratch), axis=0) / (sig_t * sig_t)
     # 4. weight: log-likelihood ratio of the triple against leaving its dots unpaired and its
     # beam unseen (module docstring); only triples worth taking enter the assignment
     n1, n2 = len(d1), len(d2)
