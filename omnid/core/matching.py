@@ -350,14 +350,25 @@ def stereo_candidates(
     ``max_depth_mm`` (default: 400 mm under the floor) below the mirrors."""
     if len(d1) == 0 or len(d2) == 0:
         return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    p1, p2 = rig.cam1.ray_slopes(d1[:, :2]), rig.cam2.ray_slopes(d2[:, :2])
+    return _stereo_pairs(rig, p1, p2, row_tol_px, min_depth_mm, max_depth_mm)
+
+
+def _stereo_pairs(
+    rig: StereoRig,
+    p1: NDArray[np.float64],
+    p2: NDArray[np.float64],
+    row_tol_px: float,
+    min_depth_mm: float,
+    max_depth_mm: float | None,
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """:func:`stereo_candidates` of the two cameras' ray slopes ``p1``, ``p2`` (N, 2)."""
     f = 0.5 * (rig.cam1.f_over_k_px + rig.cam2.f_over_k_px)
-    p1 = rig.cam1.ray_slopes(d1[:, :2])
-    p2 = rig.cam2.ray_slopes(d2[:, :2])
     i, j = _candidates_by_row(p1[:, 0], p2[:, 0], row_tol_px / f)
-    disp = p1[:, 1][i] - p2[:, 1][j]  # D/Z
+    disp = np.take(p1[:, 1], i) - np.take(p2[:, 1], j)  # D/Z
     deep = max_depth_mm if max_depth_mm is not None else rig.floor_depth_mm + 400.0
     ok = (disp >= rig.baseline_mm / deep) & (disp <= rig.baseline_mm / min_depth_mm)
-    return i.compress(ok).astype(np.intp), j.compress(ok).astype(np.intp)
+    return i.compress(ok).astype(np.intp, copy=False), j.compress(ok).astype(np.intp, copy=False)
 
 
 @dataclass(frozen=True)
@@ -555,11 +566,13 @@ def match_triples(
     tr = _tracks(rig, laser)
     H = rig.floor_depth_mm
     sig = float(sigma_px)
-    # 1. stereo pairs whose rays can meet (the rows' test needs no laser model)
-    i, j = stereo_candidates(
+    # 1. stereo pairs whose rays can meet (the rows' test needs no laser model); the dots'
+    # ideal offsets serve both the slopes and the triples below
+    ideal1, ideal2 = rig.cam1.ideal_offsets(d1[:, :2]), rig.cam2.ideal_offsets(d2[:, :2])
+    i, j = _stereo_pairs(
         rig,
-        d1,
-        d2,
+        rig.cam1.slopes_of_offsets(ideal1),
+        rig.cam2.slopes_of_offsets(ideal2),
         s.gate_sigma * math.sqrt(2.0) * sig + s.row_slack_px,
         s.near_depth_mm,
         H + s.dropoff_depth_mm,
@@ -568,8 +581,7 @@ def match_triples(
         return _empty_triples()
     # (x1, y1, x2, y2) of each pair, coordinate first as below: numpy works ~5x slower along
     # short rows (and indexes the rows of a 2-D array ~10x slower)
-    off1 = rig.cam1.ideal_offsets(d1[:, :2]).T
-    off2 = rig.cam2.ideal_offsets(d2[:, :2]).T
+    off1, off2 = ideal1.T, ideal2.T
     m = np.vstack([np.take(off1, i, axis=1), np.take(off2, j, axis=1)])  # (4, pairs)
     p_st, q_st, u_st = tr.stereo_solve @ m  # (p, q, u) of each pair
     # 2. the beams such a point could lie on: project it from the source onto the floor
