@@ -33,14 +33,49 @@ def median(x: NDArray) -> float:
     return 0.5 * (float(q[:hi].max() if lo < hi else q[hi]) + float(q[hi]))
 
 
+#: :func:`kth_smallest` selects from a bracket of this many samples' ranks either side (of
+#: its ~256 samples) around the rank sought.
+_BRACKET_SAMPLES = 8
+
+
+def kth_smallest(x: NDArray, k: int) -> NDArray:
+    """The value of rank ``k`` of a non-empty 1-D array, exactly ``np.partition(x, k)[k]``,
+    ~3x faster on ~10⁴ values (see :func:`_bracketed`)."""
+    value = _bracketed(x, k)
+    return np.partition(x, k)[k] if value is None else value
+
+
+def _bracketed(x: NDArray, k: int) -> NDArray | None:
+    """The value of rank ``k`` of ``x`` from the values in a bracket [lo, hi] read off a sorted
+    sample of ~256 of them, when the counts below and within say it holds that rank (only
+    the few per cent within are partitioned); None when not, for a zero (whose sign the
+    partition chooses) and for short arrays."""
+    n = len(x)
+    if n < 2048:
+        return None
+    sample = np.sort(x[:: n // 256])
+    at = (k * len(sample)) // n
+    lo = sample[max(at - _BRACKET_SAMPLES, 0)]
+    hi = sample[min(at + _BRACKET_SAMPLES, len(sample) - 1)]
+    below = int(np.count_nonzero(x < lo))
+    within = np.flatnonzero((x >= lo) & (x <= hi))
+    if not below <= k < below + len(within):
+        return None
+    value = np.partition(np.take(x, within), k - below)[k - below]
+    return None if value == 0 else value
+
+
 def quartiles(x: NDArray) -> NDArray:
     """The values of rank ``len(x) // 4`` and ``len(x) // 2`` of a non-empty 1-D array, in its
     dtype (what ``np.partition(x, (k25, k50))`` puts there, ~6x faster: numpy's partition at
-    two ranks at once is slow)."""
+    two ranks at once is slow; on ~10⁴ values each from a bracket, :func:`_bracketed`)."""
     k25, k50 = len(x) // 4, len(x) // 2
-    q = np.partition(x, k50)
-    low = np.partition(q[:k50], k25)[k25] if k25 < k50 else q[k25]
-    return np.array([low, q[k50]], dtype=x.dtype)
+    low, mid = _bracketed(x, k25), _bracketed(x, k50)
+    if low is None or mid is None:
+        q = np.partition(x, k50)
+        low = np.partition(q[:k50], k25)[k25] if k25 < k50 else q[k25]
+        mid = q[k50]
+    return np.array([low, mid], dtype=x.dtype)
 
 
 def clip(x: NDArray, lo: float, hi: float) -> NDArray:

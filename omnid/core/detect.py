@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 
 from omnid.config import Settings, require, setting
 from omnid.core import spotfit, spotshape
-from omnid.core.arrays import clip, median, quartiles
+from omnid.core.arrays import clip, kth_smallest, median, quartiles
 from omnid.errors import InputError
 
 DetectionMethod = Literal["thesis", "best"]
@@ -341,7 +341,7 @@ def _flicker_gain(d: NDArray, mask_gray: NDArray, noise: float) -> float:
     m_lit = m[lit]
     ratio = d[::step][lit] / m_lit
     mid = len(ratio) // 2
-    gain = float(np.partition(ratio, mid)[mid])
+    gain = float(kth_smallest(ratio, mid))
     return gain if abs(gain) * float(m_lit.mean()) >= 2.0 * noise else 0.0
 
 
@@ -424,12 +424,13 @@ def _background_half(
     is added back. The background is smooth, so half resolution loses nothing but time.
     """
     k = radius_px | 1  # ±radius at half resolution is a little wider, with the pyramid blur
-    low = cv2.blur(cv2.erode(small, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))), (k, k))
+    eroded = cv2.erode(small, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    low = cv2.blur(eroded, (k, k))
     # Noise of pyrDown's output: its 5x5 kernel's squared weights sum to (35/128)².
     lim = 2.0 * max(noise * 35.0 / 128.0, 0.25)
-    rest = np.subtract(small, low, dtype=np.float32)
-    np.maximum(rest, -lim, out=rest)
-    np.minimum(rest, lim, out=rest)
+    # (into the min filter's array: a fresh one of the image's size costs page faults)
+    rest = np.subtract(small, low, out=eroded, dtype=np.float32)
+    np.clip(rest, -lim, lim, out=rest)  # (one SIMD pass: ~5x np.maximum's with a scalar)
     k_bias = 2 * (_BIAS_RADIUS_PX // 2) + 1
     bias = cv2.blur(rest, (k_bias, k_bias))
     return np.add(low, bias, out=bias, dtype=np.float32)
@@ -647,11 +648,14 @@ def _detect_best(
     # The laser only adds light: a background below zero is the scene's change (a moved
     # mask's edge, something gone), not a floor to measure dots from — above it its own edge
     # would stand out like a row of dots.
-    np.maximum(bg_half, 0.0, out=bg_half)
+    # (np.maximum(bg_half, 0.0) to the bit, ~2x faster: the clip keeps −0.0, + 0.0 makes it 0.0)
+    np.clip(bg_half, 0.0, np.inf, out=bg_half)
+    bg_half += 0.0
     if min(h_img, w_img) < _MIN_PYRAMID_PX:
         r0, r1, c0, c1 = 0, h_img, 0, w_img
     else:
-        active = (small - bg_half > _ACTIVE_SHARE * threshold).view(np.uint8)
+        # (``small`` is not needed after this: the difference is taken in place)
+        active = (np.subtract(small, bg_half, out=small) > _ACTIVE_SHARE * threshold).view(np.uint8)
         box = _box_of(active, 8 + p.best_relative_radius_px, (h_img, w_img))
         if box is None:
             return _empty()
@@ -1234,8 +1238,12 @@ def _bilinear(img: NDArray, r: NDArray, c: NDArray) -> NDArray:
     c = clip(c, 0.0, img.shape[1] - 1.001)
     r0, c0 = r.astype(np.intp), c.astype(np.intp)
     fr, fc = r - r0, c - c0
-    top = img[r0, c0] * (1.0 - fc) + img[r0, c0 + 1] * fc
-    bottom = img[r0 + 1, c0] * (1.0 - fc) + img[r0 + 1, c0 + 1] * fc
+    w = img.shape[1]
+    flat = np.ascontiguousarray(img).ravel()  # (gathers of flat indices: ~2x 2-D indexing)
+    at = r0 * w + c0
+    top = np.take(flat, at) * (1.0 - fc) + np.take(flat, at + 1) * fc
+    at += w
+    bottom = np.take(flat, at) * (1.0 - fc) + np.take(flat, at + 1) * fc
     return np.asarray(top * (1.0 - fr) + bottom * fr)
 
 

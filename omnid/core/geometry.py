@@ -129,7 +129,10 @@ class MirrorCamera:
 
         The viewing ray of a pixel is {(0, Y_i, 0) + Z·(X/Z, (Y−Y_i)/Z, 1) : Z > 0}.
         """
-        off = self.ideal_offsets(rc)
+        return self.slopes_of_offsets(self.ideal_offsets(rc))
+
+    def slopes_of_offsets(self, off: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Ideal offsets (N, 2) px (:meth:`ideal_offsets`) → ray slopes (N, 2) (:meth:`ray_slopes`)."""
         return np.column_stack([-off[:, 0], off[:, 1]]) / self.f_over_k_px
 
     def ray_directions(self, rc: ArrayLike) -> NDArray[np.float64]:

@@ -154,9 +154,11 @@ def _expand_ranges(
     cnt = np.maximum(hi - lo, 0)
     ends = np.cumsum(cnt)
     owner = np.repeat(np.arange(len(lo)), cnt)
-    # position = its rank among all + (lo − the owner's first rank): one repeat, not two
-    pos = np.arange(int(ends[-1]) if len(ends) else 0) + np.repeat(lo - (ends - cnt), cnt)
-    return owner, pos.astype(np.intp, copy=False)
+    # position = its rank among all + (lo − the owner's first rank), in place: each fresh
+    # array of ~10⁴ costs page faults besides its pass
+    pos = np.arange(int(ends[-1]) if len(ends) else 0, dtype=np.intp)
+    pos += np.take(lo - (ends - cnt), owner)
+    return owner, pos
 
 
 def _candidates_by_row(
@@ -348,14 +350,25 @@ def stereo_candidates(
     ``max_depth_mm`` (default: 400 mm under the floor) below the mirrors."""
     if len(d1) == 0 or len(d2) == 0:
         return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    p1, p2 = rig.cam1.ray_slopes(d1[:, :2]), rig.cam2.ray_slopes(d2[:, :2])
+    return _stereo_pairs(rig, p1, p2, row_tol_px, min_depth_mm, max_depth_mm)
+
+
+def _stereo_pairs(
+    rig: StereoRig,
+    p1: NDArray[np.float64],
+    p2: NDArray[np.float64],
+    row_tol_px: float,
+    min_depth_mm: float,
+    max_depth_mm: float | None,
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """:func:`stereo_candidates` of the two cameras' ray slopes ``p1``, ``p2`` (N, 2)."""
     f = 0.5 * (rig.cam1.f_over_k_px + rig.cam2.f_over_k_px)
-    p1 = rig.cam1.ray_slopes(d1[:, :2])
-    p2 = rig.cam2.ray_slopes(d2[:, :2])
     i, j = _candidates_by_row(p1[:, 0], p2[:, 0], row_tol_px / f)
-    disp = p1[:, 1][i] - p2[:, 1][j]  # D/Z
+    disp = np.take(p1[:, 1], i) - np.take(p2[:, 1], j)  # D/Z
     deep = max_depth_mm if max_depth_mm is not None else rig.floor_depth_mm + 400.0
     ok = (disp >= rig.baseline_mm / deep) & (disp <= rig.baseline_mm / min_depth_mm)
-    return i.compress(ok).astype(np.intp), j.compress(ok).astype(np.intp)
+    return i.compress(ok).astype(np.intp, copy=False), j.compress(ok).astype(np.intp, copy=False)
 
 
 @dataclass(frozen=True)
@@ -512,11 +525,18 @@ def _beams_near(
     row = band * n_cols
     # one run per (query, band): the cells c_lo … c_hi lie next to each other in cell order
     own, pos = _expand_ranges(tr.cell_start[row + c_lo[qb]], tr.cell_start[row + c_hi[qb] + 1])
-    q = qb[own]
-    dx = tr.cell_x_mm[pos] - x[q]
-    dy = tr.cell_y_mm[pos] - y[q]
-    rq = radius[q]
-    ok = dx * dx + dy * dy <= rq * rq
+    q = np.take(qb, own)
+    # dx² + dy² <= r², in place (fewer fresh arrays of ~10⁴: each costs page faults)
+    dx = np.take(tr.cell_x_mm, pos)
+    dx -= np.take(x, q)
+    dy = np.take(tr.cell_y_mm, pos)
+    dy -= np.take(y, q)
+    dx *= dx
+    dy *= dy
+    dx += dy
+    rq = np.take(radius, q)
+    rq *= rq
+    ok = dx <= rq
     q, k = q.compress(ok), np.take(tr.cell_order, pos.compress(ok))
     # (nearly sorted already: the merge sort runs through it)
     order = np.argsort(q * len(tr.x_rank) + tr.x_rank[k], kind="stable")
@@ -546,11 +566,13 @@ def match_triples(
     tr = _tracks(rig, laser)
     H = rig.floor_depth_mm
     sig = float(sigma_px)
-    # 1. stereo pairs whose rays can meet (the rows' test needs no laser model)
-    i, j = stereo_candidates(
+    # 1. stereo pairs whose rays can meet (the rows' test needs no laser model); the dots'
+    # ideal offsets serve both the slopes and the triples below
+    ideal1, ideal2 = rig.cam1.ideal_offsets(d1[:, :2]), rig.cam2.ideal_offsets(d2[:, :2])
+    i, j = _stereo_pairs(
         rig,
-        d1,
-        d2,
+        rig.cam1.slopes_of_offsets(ideal1),
+        rig.cam2.slopes_of_offsets(ideal2),
         s.gate_sigma * math.sqrt(2.0) * sig + s.row_slack_px,
         s.near_depth_mm,
         H + s.dropoff_depth_mm,
@@ -559,8 +581,7 @@ def match_triples(
         return _empty_triples()
     # (x1, y1, x2, y2) of each pair, coordinate first as below: numpy works ~5x slower along
     # short rows (and indexes the rows of a 2-D array ~10x slower)
-    off1 = rig.cam1.ideal_offsets(d1[:, :2]).T
-    off2 = rig.cam2.ideal_offsets(d2[:, :2]).T
+    off1, off2 = ideal1.T, ideal2.T
     m = np.vstack([np.take(off1, i, axis=1), np.take(off2, j, axis=1)])  # (4, pairs)
     p_st, q_st, u_st = tr.stereo_solve @ m  # (p, q, u) of each pair
     # 2. the beams such a point could lie on: project it from the source onto the floor
@@ -580,15 +601,19 @@ def match_triples(
     if len(pq) == 0:
         return _empty_triples()
     # 3. each triple's least-squares depth along its beam and residual (3 degrees of freedom)
-    mm = np.take(m, pq, axis=1)
-    al, be = np.take(tr.alpha, k, axis=1), np.take(tr.beta, k, axis=1)
-    bb = np.sum(be * be, axis=0)
+    # (in place, one scratch array: each fresh (4, triples) array costs page faults besides
+    # its pass)
+    r = np.take(m, pq, axis=1)
+    r -= np.take(tr.alpha, k, axis=1)  # m − α
+    be = np.take(tr.beta, k, axis=1)
+    scratch = np.multiply(be, be)
+    bb = np.sum(scratch, axis=0)
     u_lo = 1.0 / (H + s.dropoff_depth_mm)
     u_hi = 1.0 / max(s.near_depth_mm, o[2] + 1.0)
-    u = clip(np.sum((mm - al) * be, axis=0) / bb, u_lo, u_hi)
-    r = mm - al - be * u
+    u = clip(np.sum(np.multiply(r, be, out=scratch), axis=0) / bb, u_lo, u_hi)
+    r -= np.multiply(be, u, out=scratch)  # the residual m − α − β·u
     sig_t = np.sqrt(sig * sig + (f * tr.slope_sigma(k, u)) ** 2)
-    chi2 = np.sum(r * r, axis=0) / (sig_t * sig_t)
+    chi2 = np.sum(np.multiply(r, r, out=scratch), axis=0) / (sig_t * sig_t)
     # 4. weight: log-likelihood ratio of the triple against leaving its dots unpaired and its
     # beam unseen (module docstring); only triples worth taking enter the assignment
     n1, n2 = len(d1), len(d2)

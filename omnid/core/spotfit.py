@@ -138,31 +138,35 @@ def near_pairs(
         i, j = np.nonzero(close)
         return i.astype(np.intp, copy=False), j.astype(np.intp, copy=False)
     # (cells wider than ``reach`` are as good; at most ~1024 per axis keep the table small)
-    span = max(float(np.ptp(r)), float(np.ptp(c)))
+    r_min, c_min = r.min(), c.min()
+    span = max(float(r.max() - r_min), float(c.max() - c_min))
     cell = max(float(reach), span / 1024.0, 1e-9)
-    gr = np.floor((r - r.min()) / cell).astype(np.int64) + 1
-    gc = np.floor((c - c.min()) / cell).astype(np.int64) + 1
+    gr = np.floor((r - r_min) / cell).astype(np.int64) + 1
+    gc = np.floor((c - c_min) / cell).astype(np.int64) + 1
     width = int(gc.max()) + 2
     key = gr * width + gc
     order = stable_argsort(key)
     per_cell = np.bincount(key, minlength=(int(gr.max()) + 2) * width)
-    cell_start = np.cumsum(per_cell) - per_cell
-    shifts = (np.arange(-1, 2)[:, None] * width + np.arange(-1, 2)[None, :]).ravel()
-    target = (key[:, None] + shifts[None, :]).ravel()  # (n · 9), i-major
-    lo = cell_start[target]
-    count = per_cell[target]
-    total = int(count.sum())
+    # cell_start[k]: the rank in ``order`` of cell k's first point (and one past the last cell)
+    cell_start = np.zeros(len(per_cell) + 1, np.int64)
+    np.cumsum(per_cell, out=cell_start[1:])
+    # A point's candidates: three runs of ``order``, each the three adjacent cells of the row
+    # of cells above, its own and below (i-major, each run in cell order).
+    run_first = ((key - (width + 1))[:, None] + np.array([0, width, 2 * width])).ravel()
+    lo = np.take(cell_start, run_first)
+    count = np.take(cell_start, run_first + 3) - lo
+    ends = np.cumsum(count)
+    total = int(ends[-1])
     if total == 0:
         return empty
-    ends = np.cumsum(count)
-    first = ends - count
-    pos = np.arange(total) - np.repeat(first - lo, count)
-    # (each point's candidates: the difference of the running count at its 9 cells' ends)
-    per_point = np.diff(ends[8::9], prepend=0)
+    pos = np.arange(total) - np.repeat(ends - count - lo, count)
+    per_point = ends[2::3].copy()  # (the running count at each point's last run, differenced)
+    per_point[1:] -= ends[2::3][:-1]
     i = np.repeat(np.arange(n, dtype=np.intp), per_point)
-    j = order[pos].astype(np.intp)
-    ri, rj, ci, cj = np.take(r, i), np.take(r, j), np.take(c, i), np.take(c, j)
-    keep = (i != j) & (np.abs(ri - rj) <= reach) & (np.abs(ci - cj) <= reach)
+    j = np.take(order, pos)
+    keep = np.abs(np.take(r, i) - np.take(r, j)) <= reach
+    keep &= np.abs(np.take(c, i) - np.take(c, j)) <= reach
+    keep &= i != j
     return i.compress(keep), j.compress(keep)
 
 
