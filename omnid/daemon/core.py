@@ -57,17 +57,25 @@ from omnid.devices.control_unit import WheelCommand
 from omnid.devices.cu_codec import (
     FAULT_OVERCURRENT_LEFT,
     FAULT_OVERCURRENT_RIGHT,
+    FAULT_STALE_COMMAND,
     FAULT_UNDERVOLTAGE,
     FAULT_WATCHDOG,
 )
 
 log = logging.getLogger(__name__)
 
-#: Control-unit fault bits that stop the chair (docs/protocol.md). RESET (first reply after
-#: power-up) and RX_ERROR (a rejected frame, which the unit ignored) are informational: the link's
-#: health and the unit's own watchdog already cover a bus that keeps failing.
+#: Control-unit fault bits that stop the chair (docs/protocol.md). STALE_COMMAND: the unit
+#: refused an ENABLE and braked — driving on would wind the wheel controller up against
+#: wheels that do not turn, and the unit re-arms on any zero frame, so the daemon stops and
+#: waits for the rider's re-arm. RESET (first reply after power-up) and RX_ERROR (a rejected
+#: frame, which the unit ignored) are informational: the link's health and the unit's own
+#: watchdog already cover a bus that keeps failing.
 STOPPING_FAULTS = (
-    FAULT_WATCHDOG | FAULT_OVERCURRENT_LEFT | FAULT_OVERCURRENT_RIGHT | FAULT_UNDERVOLTAGE
+    FAULT_WATCHDOG
+    | FAULT_OVERCURRENT_LEFT
+    | FAULT_OVERCURRENT_RIGHT
+    | FAULT_UNDERVOLTAGE
+    | FAULT_STALE_COMMAND
 )
 
 

@@ -742,6 +742,14 @@ class Daemon:
         new._live_inputs, new._last_step_s = old._live_inputs, old._last_step_s
         new.arming = old.arming
         new.arming.enabled = new.config.control.rearm_after_fault
+        # what the chair has learned about the world and itself outlives a reload: a bump's
+        # refused direction, the rig knocked out of calibration, a shutdown under way
+        new.bump_direction, new.bump_count = old.bump_direction, old.bump_count
+        new.bump_times = old.bump_times
+        if new.config.motion == old.config.motion:
+            new.stall = old.stall
+        new.calibration_lost, new.misfit_clouds = old.calibration_lost, old.misfit_clouds
+        new.not_understood, new.halt = old.not_understood, old.halt
         if new.config.rider == old.config.rider:
             new.mux = old.mux
         elif old.config.rider.tilt.neutral_calibration_s > 0 and not old.mux.tilt.calibrating:

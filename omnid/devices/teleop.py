@@ -223,8 +223,11 @@ class TeleopServer:
                     break
                 now = self.clock()
                 client.last_s = now
-                if client.take(now):
-                    reply = self.handle_line(raw.decode("ascii", errors="replace"))
+                line = raw.decode("ascii", errors="replace")
+                # a stop is never rate-limited: after a burst of key repeats it is the one
+                # line that must get through (it takes no token, and can move nothing)
+                if line.strip().lower() == "stop" or client.take(now):
+                    reply = self.handle_line(line)
                 else:
                     self.rate_limited += 1
                     reply = "error rate limit"

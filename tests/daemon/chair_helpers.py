@@ -1,5 +1,6 @@
-"""Shared bits of the review's tests: a free-floor map (test side, like tests/daemon's) and a
-chair whose wheels follow duty, reporting through the real ControlUnitStatus."""
+"""Test doubles for the daemon's fault tests: a free-floor map (test side, as in
+daemon_helpers) and a chair whose wheels follow duty, reporting through the real
+ControlUnitStatus."""
 
 from __future__ import annotations
 
@@ -38,8 +39,9 @@ class Chair:
         self.duty = (0.0, 0.0)
 
     def apply(self, cmd, dt: float) -> None:
-        self.duty = (0.0, 0.0) if (self.refusing or not cmd.enable) else (
-            cmd.left_duty, cmd.right_duty)
+        self.duty = (
+            (0.0, 0.0) if (self.refusing or not cmd.enable) else (cmd.left_duty, cmd.right_duty)
+        )
         if self.refusing:
             return
         if self.blocked and (cmd.left_duty > 0 or cmd.right_duty > 0):

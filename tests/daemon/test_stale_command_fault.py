@@ -12,7 +12,7 @@ without a re-arm and without a ramp from standstill.
 from __future__ import annotations
 
 import numpy as np
-from review_helpers import Chair, FreeFloor
+from chair_helpers import Chair, FreeFloor
 
 from omnid.daemon.config import OmnidConfig
 from omnid.daemon.core import ControlCore

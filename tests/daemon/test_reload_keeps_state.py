@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import asyncio
 
-import numpy as np
-from review_helpers import Chair, FreeFloor
-from test_review_stale_command_fault import ride
+from chair_helpers import Chair, FreeFloor
+from test_stale_command_fault import ride
 
 from omnid.daemon.config import ConfigHolder
 from omnid.daemon.core import ControlCore
