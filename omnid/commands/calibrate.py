@@ -84,9 +84,11 @@ def run(args: argparse.Namespace) -> int:
         if las.source_known
         else "source unknown (no --extra)"
     )
+    doubled = int(las.doubled().sum())
     print(
         f"laser: {len(las)} beams ({int(r.get('beams_one_camera', 0))} seen by one camera on "
-        f"the floor, {int(r.get('beams_off_floor', 0))} only off it), {where}: line residual "
+        f"the floor, {int(r.get('beams_off_floor', 0))} only off it, {doubled} doubled: "
+        f"their blobs are split), {where}: line residual "
         f"{r.get('source_line_rms_mm', 0.0):.2f} mm rms, track residual "
         f"{r.get('extra_track_rms_px', 0.0):.3f} px rms, "
         f"{100 * r.get('extra_matched_fraction', 0.0):.0f} % of the extras' dots matched"
