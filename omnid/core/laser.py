@@ -131,20 +131,16 @@ class LaserModel:
         detector sees as one maximum wherever its spots are larger than half their distance."""
         p = self.floor_mm[:, :2]
         k = len(p)
-        out = np.zeros(k, dtype=bool)
         if k < 3:
-            return out
-        nearest = np.full(k, np.inf)
-        other = np.full(k, -1, dtype=np.intp)
-        for a in range(0, k, 256):  # (K x 256 distances at a time)
+            return np.zeros(k, dtype=bool)
+        nearest = np.empty(k)
+        for a in range(0, k, 256):  # (256 x K distances at a time)
             d = np.hypot(
                 p[a : a + 256, None, 0] - p[None, :, 0], p[a : a + 256, None, 1] - p[None, :, 1]
             )
-            d[np.arange(len(d)), np.arange(a, a + len(d))] = np.inf
-            other[a : a + 256] = np.argmin(d, axis=1)
-            nearest[a : a + 256] = d[np.arange(len(d)), other[a : a + 256]]
-        out = nearest < share * float(np.median(nearest))
-        return np.asarray(out, dtype=bool)
+            d[np.arange(len(d)), np.arange(a, a + len(d))] = np.inf  # (not its own neighbour)
+            nearest[a : a + 256] = d.min(axis=1)
+        return np.asarray(nearest < share * float(np.median(nearest)), dtype=bool)
 
     def with_source(
         self, source_mm: tuple[float, float, float], sigma_mm: tuple[float, float, float]
