@@ -747,6 +747,8 @@ def _detect_best(
     n_blobs = len(rows)
     blob_r, blob_c, blob_rows, blob_cols = r, c, rows, cols  # (as one dot: the pull's view)
     region = None
+    if isinstance(split_blends, np.bool_) or np.ndim(split_blends) == 0:
+        split_blends = bool(split_blends)
     if not isinstance(split_blends, bool):
         region = np.asarray(split_blends, dtype=bool)
         if region.shape != (h_img, w_img):

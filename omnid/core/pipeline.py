@@ -40,18 +40,23 @@ from omnid.errors import InputError
 SPLIT_TRACK_HALF_PX = 4
 
 
-def split_regions(calib: Calibration) -> tuple[NDArray[np.bool_], NDArray[np.bool_]] | None:
+def split_regions(
+    calib: Calibration, matching: MatchSettings | None = None
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]] | None:
     """Per camera, the pixels where the detector splits a blend of two spots
     (:func:`~omnid.core.detect.detect_dots`' ``split_where``): within
     :data:`SPLIT_TRACK_HALF_PX` of the image track of a beam the laser model holds as doubled
-    (:meth:`~omnid.core.laser.LaserModel.doubled`) between ``min_depth`` 250 mm and 400 mm
-    under the floor. None when no beam is doubled. Such twins are one maximum for the
-    detector; splitting only there costs what a few blobs cost, where splitting everywhere
-    costs 1.4–2.6x the detection. Cached per calibration."""
+    (:meth:`~omnid.core.laser.LaserModel.doubled`), at every depth the matcher reads
+    (``matching.near_depth_mm`` below the mirrors to ``dropoff_depth_mm`` under the floor), for
+    the source where calibration put it and 2 σ off it along each axis (an unknown source's
+    prior spread moves the tracks away from the floor). None when no beam is doubled. Such
+    twins are one maximum for the detector; splitting only there costs what a few blobs cost,
+    where splitting everywhere costs 1.4–2.6x the detection. Cached per calibration."""
     laser = calib.laser
     if laser is None:
         return None
-    key = (id(laser), calib.rig)
+    m = matching or MatchSettings()
+    key = (id(laser), calib.rig, m.near_depth_mm, m.dropoff_depth_mm)
     hit = _SPLIT_CACHE.get(key)
     if hit is not None and hit[0] is laser:
         return hit[1]
@@ -59,19 +64,31 @@ def split_regions(calib: Calibration) -> tuple[NDArray[np.bool_], NDArray[np.boo
     out: tuple[NDArray[np.bool_], NDArray[np.bool_]] | None = None
     if len(beams):
         h = calib.floor_depth_mm
-        u = np.linspace(1.0 / 250.0, 1.0 / (h + 400.0), 48)
-        pts = laser.point_at(np.repeat(beams, len(u)), np.tile(u, len(beams)))
-        px = calib.rig.project(pts).reshape(len(beams), len(u), 4)
+        u = np.linspace(1.0 / m.near_depth_mm, 1.0 / (h + m.dropoff_depth_mm), 64)
+        o, so = np.asarray(laser.source_mm), np.asarray(laser.source_sigma_mm)
+        corners = np.array(np.meshgrid([-2.0, 2.0], [-2.0, 2.0], [-2.0, 2.0])).reshape(3, -1).T
+        sources = [src for src in (o, *(o + corners * so)) if src[2] < h - 1.0]
+        px = []  # (sources, beams, depths, 4) image positions
+        for src in sources:
+            model = laser.with_source((src[0], src[1], src[2]), laser.source_sigma_mm)
+            pts = model.point_at(np.repeat(beams, len(u)), np.tile(u, len(beams)))
+            px.append(calib.rig.project(pts).reshape(len(beams), len(u), 4))
+        pos = np.stack(px)
         masks = []
         for cam, shape in ((0, calib.rig.cam1.image_shape), (1, calib.rig.cam2.image_shape)):
             img = np.zeros(tuple(shape), dtype=np.uint8)
-            for track in px[:, :, 2 * cam : 2 * cam + 2]:
-                ok = np.isfinite(track).all(axis=1)
-                xy = np.rint(track[ok][:, ::-1] * 16.0).astype(np.int32)  # (col, row), 4 bits
-                if len(xy) >= 2:
-                    cv2.polylines(img, [xy], False, 1, 2 * SPLIT_TRACK_HALF_PX + 1, cv2.LINE_8, 4)
-            masks.append(img.astype(bool))
-        out = (masks[0], masks[1])
+            # each stretch of a track between two depths, swept over the source's spread: the
+            # convex hull of its ends for every source drawn (the image moves smoothly with O)
+            for k in range(len(beams)):
+                for i in range(len(u) - 1):
+                    q = pos[:, k, i : i + 2, 2 * cam : 2 * cam + 2].reshape(-1, 2)
+                    q = q[np.isfinite(q).all(axis=1)]
+                    if len(q):
+                        hull = cv2.convexHull(np.rint(q[:, ::-1] * 16.0).astype(np.int32))
+                        cv2.fillConvexPoly(img, hull, 1, cv2.LINE_8, 4)
+            grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SPLIT_TRACK_HALF_PX + 1,) * 2)
+            masks.append(cv2.dilate(img, grow))
+        out = (masks[0].astype(bool), masks[1].astype(bool))
     if len(_SPLIT_CACHE) > 8:
         _SPLIT_CACHE.clear()
     _SPLIT_CACHE[key] = (laser, out)
@@ -79,7 +96,8 @@ def split_regions(calib: Calibration) -> tuple[NDArray[np.bool_], NDArray[np.boo
 
 
 _SPLIT_CACHE: dict[
-    tuple[int, Any], tuple[LaserModel, tuple[NDArray[np.bool_], NDArray[np.bool_]] | None]
+    tuple[int, Any, float, float],
+    tuple[LaserModel, tuple[NDArray[np.bool_], NDArray[np.bool_]] | None],
 ] = {}
 
 
@@ -259,7 +277,7 @@ def perceive_detailed(
     split1: bool | NDArray[np.bool_] = False
     split2: bool | NDArray[np.bool_] = False
     if det == "best" and s.split_doubled and calib.laser is not None:
-        regions = split_regions(calib)
+        regions = split_regions(calib, s.matching)
         if regions is not None:
             split1, split2 = regions
     d1 = detect_dots(capture.mask1, capture.base1, det, s.detection, split1)

@@ -278,3 +278,17 @@ def test_noise_sigma_histogram_is_the_median_of_the_differences() -> None:
         for shape in ((3, 5), (70, 640), (200, 33)):
             d = np.clip(rng.normal(0.0, scale, shape), -32768, 32767).astype(np.int16)
             assert _noise_sigma(d) == _noise_sigma(d.astype(np.float32))
+
+
+def test_split_where_takes_numpy_bools_and_refuses_a_mask_of_another_shape():
+    from omnid.experiments import rigs as ev
+    from omnid.sim.world import World
+
+    _, cap = ev.capture(ev.rig_case(8, 0), World(), seed=3)
+    every = detect_dots(cap.mask1, cap.base1, "best", None, True)
+    assert np.array_equal(detect_dots(cap.mask1, cap.base1, "best", None, np.True_), every)
+    none = detect_dots(cap.mask1, cap.base1, "best", None, np.bool_(False))
+    assert np.array_equal(none, detect_dots(cap.mask1, cap.base1))
+    assert len(every) > len(none)  # this laser has doubled beams: the split finds their twins
+    with pytest.raises(InputError, match="split region"):
+        detect_dots(cap.mask1, cap.base1, "best", None, np.ones((10, 10), dtype=bool))

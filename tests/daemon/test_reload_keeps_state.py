@@ -1,6 +1,6 @@
-"""Review finding: a SIGHUP reload (Daemon._swap_core) builds a fresh ControlCore and copies only
-some of its state: the bump refusal (bump_direction, the StallDetector) is dropped, so after a
-reload the chair drives again, at once, in the direction it just bumped into."""
+"""A SIGHUP reload (Daemon._swap_core) builds a fresh ControlCore on the new configuration and
+keeps what the chair has learned: a bump's refused direction and the stall detector, a rig out
+of calibration. (It dropped the bump: the chair drove again, at once, into what it had bumped.)"""
 
 from __future__ import annotations
 
@@ -41,7 +41,12 @@ def test_reload_keeps_the_bump_refusal(tmp_path):
     assert d.core.bump_count == 1 and d.core.bump_direction is not None
     assert Reason.BUMP in d.core.last_report.reasons  # still refused: rider holds forward
     path.write_text(YAML + "service:\n  status_period_s: 2.0\n")  # an unrelated change
+    old_core = d.core
+    old_core.calibration_lost, old_core.misfit_clouds = True, 4  # (as a knocked rig leaves it)
     assert asyncio.run(d.reload())
+    assert d.core is not old_core and d.core.stall is old_core.stall  # same motion settings
+    assert d.core.calibration_lost and d.core.misfit_clouds == 4
+    d.core.calibration_lost, d.core.misfit_clouds = False, 0
     cmds = ride(d.core, chair, 5.0, 5.2, 1.0)  # the rider still holds the stick forward
     driving = [c for c in cmds if c.enable and c.left_duty > 0]
     assert not driving, (
