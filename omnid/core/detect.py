@@ -747,9 +747,8 @@ def _detect_best(
     n_blobs = len(rows)
     blob_r, blob_c, blob_rows, blob_cols = r, c, rows, cols  # (as one dot: the pull's view)
     region = None
-    if isinstance(split_blends, np.bool_) or np.ndim(split_blends) == 0:
-        split_blends = bool(split_blends)
-    if not isinstance(split_blends, bool):
+    split_all = bool(split_blends) if np.ndim(split_blends) == 0 else False  # (numpy bools too)
+    if np.ndim(split_blends) != 0:
         region = np.asarray(split_blends, dtype=bool)
         if region.shape != (h_img, w_img):
             raise InputError(
@@ -757,7 +756,7 @@ def _detect_best(
                 f"the image {w_img}x{h_img} px"
             )
         region = region[r0:r1, c0:c1]
-    if split_blends is True or (region is not None and region[rows, cols].any()):
+    if split_all or region is not None:  # (the region's candidates: _split_blends picks them)
         rows, cols, centre, r, c, clipped, pair, fixed = _split_blends(
             d,
             saturated,

@@ -28,8 +28,9 @@ SOURCE_PRIOR_SIGMA_MM = (40.0, 40.0, 100.0)
 
 
 #: A beam is doubled (:meth:`LaserModel.doubled`) when another beam's floor dot lies nearer than
-#: this share of the pattern's typical spacing: the random gratings' twins lie 0.05–0.35 of it
-#: apart, regular neighbours (the pitch, the dense laser's too) at 0.7 or more.
+#: this share of the pattern's typical spacing: on 12 random rigs the twins calibration learned
+#: lie 0.21–0.48 of it apart, the nearest regular neighbours at 0.64 or more (the default and
+#: the dense laser: 0.69–0.72).
 DOUBLED_SHARE = 0.5
 
 

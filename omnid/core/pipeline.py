@@ -34,9 +34,9 @@ from omnid.core.matching import (
 from omnid.core.types import PointCloud, StereoCapture
 from omnid.errors import InputError
 
-#: Half the width of a doubled beam's image track in :func:`split_regions`, px: its two dots
+#: How far around a doubled beam's image track :func:`split_regions` reaches, px: its two dots
 #: lie either side of the blend's maximum (the random gratings' twins ≤ 3.5 px apart on the
-#: floor), and the track is known to the calibration's error away from the floor.
+#: floor), and the detected maximum lies within a pixel of the true one.
 SPLIT_TRACK_HALF_PX = 4
 
 
@@ -48,8 +48,9 @@ def split_regions(
     :data:`SPLIT_TRACK_HALF_PX` of the image track of a beam the laser model holds as doubled
     (:meth:`~omnid.core.laser.LaserModel.doubled`), at every depth the matcher reads
     (``matching.near_depth_mm`` below the mirrors to ``dropoff_depth_mm`` under the floor), for
-    the source where calibration put it and 2 σ off it along each axis (an unknown source's
-    prior spread moves the tracks away from the floor). None when no beam is doubled. Such
+    every source within the box 2 σ about where calibration put it (an unknown source's prior
+    spread moves the tracks away from the floor): each stretch of track between two depths is
+    the convex hull of its ends for the box's centre and corners. None when no beam is doubled. Such
     twins are one maximum for the detector; splitting only there costs what a few blobs cost,
     where splitting everywhere costs 1.4–2.6x the detection. Cached per calibration."""
     laser = calib.laser
@@ -276,7 +277,7 @@ def perceive_detailed(
     det = s.detection_method or method
     split1: bool | NDArray[np.bool_] = False
     split2: bool | NDArray[np.bool_] = False
-    if det == "best" and s.split_doubled and calib.laser is not None:
+    if det == "best" and s.split_doubled:
         regions = split_regions(calib, s.matching)
         if regions is not None:
             split1, split2 = regions
