@@ -30,24 +30,49 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
-# The long runs (closed loops, the soak, the real daemon against its emulators) first: with
-# pytest-xdist the last minute is then not one worker finishing a long test alone.
-_LONG_FIRST = (
-    "tests/scenarios/",
-    "tests/sim/test_simulator.py",
-    "tests/record/test_bench.py",
-    "tests/daemon/test_daemon_system.py",
-    "tests/sim/test_sim_camera.py",
-    "tests/core/test_matching.py",  # its random-rigs fixture takes ~15 s to build
-)
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "slow(seconds): a long run (still part of CI) and about how long it takes on a 2-core "
+        "machine, s: the suite starts it first, on the least loaded worker",
+    )
+
+
+def _seconds(item: pytest.Item) -> float:
+    mark = item.get_closest_marker("slow")
+    if mark is None:
+        return 0.0
+    return float(mark.kwargs["seconds"] if "seconds" in mark.kwargs else mark.args[0])
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    def rank(item: pytest.Item) -> int:
-        path = item.nodeid.split("::", 1)[0]
-        return next((k for k, p in enumerate(_LONG_FIRST) if path.startswith(p)), len(_LONG_FIRST))
+    """Order the tests so that pytest-xdist starts every long run first, spread over its workers.
 
-    items.sort(key=rank)  # stable: the order within each group is kept
+    ``--dist worksteal`` hands each of n workers one contiguous share of the collection and
+    later moves the tail of the longest queue to an idle worker. So each long run (``slow(seconds)``) goes, longest first, to the head of the share
+    with the least long-run time so far; the others keep their order behind them. Without it,
+    the suite's last half-minute was one worker alone in a 25 s test."""
+    workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    long_runs = sorted((it for it in items if _seconds(it) > 0), key=_seconds, reverse=True)
+    if not long_runs:
+        return
+    rest = [it for it in items if _seconds(it) == 0]
+    sizes, left = [], len(items)
+    for k in range(workers):  # the shares' sizes as worksteal's first distribution cuts them
+        sizes.append(left // (workers - k))
+        left -= sizes[-1]
+    heads: list[list[pytest.Item]] = [[] for _ in range(workers)]
+    load = [0.0] * workers
+    for it in long_runs:
+        k = min((k for k in range(workers) if len(heads[k]) < sizes[k]), key=lambda k: load[k])
+        heads[k].append(it)
+        load[k] += _seconds(it)
+    order: list[pytest.Item] = []
+    for head, size in zip(heads, sizes, strict=True):
+        take = size - len(head)
+        order += head + rest[:take]
+        rest = rest[take:]
+    items[:] = order
 
 
 @pytest.fixture

@@ -37,6 +37,7 @@ def test_ruff_clean():
 
 
 @pytest.mark.skipif(importlib.util.find_spec("mypy") is None, reason="mypy is not installed")
+@pytest.mark.slow(seconds=21)
 def test_mypy_clean():
     out = subprocess.run(
         [sys.executable, "-m", "mypy", "--no-error-summary"],

@@ -73,6 +73,7 @@ def floor_frames(tmp_path_factory) -> tuple[Path, object]:
     return calibrate_installation_cli(rig, tmp_path_factory.mktemp("floor"), seed=3)
 
 
+@pytest.mark.slow(seconds=7)
 def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> None:
     calib, cap = floor_frames
     cu = ControlUnitEmulator(MotorPlant())
@@ -225,6 +226,7 @@ def test_frame_time_keeps_own_clock_stamps_and_replaces_foreign_ones() -> None:
     assert np.isfinite(frame_time(float("nan"), 1.0, 2.0))
 
 
+@pytest.mark.slow(seconds=9)
 def test_daemon_streams_clouds_at_the_frame_rate(tmp_path: Path, floor_frames) -> None:
     """``omnid run`` with ``perception.capture: stream`` against a frame server free-running at
     30 frames/s whose frames show the laser by the share of their exposure it was lit (an 8–12

@@ -16,6 +16,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant, WireSpy
 
 STALL_S = 0.6
@@ -63,6 +65,7 @@ def turning(emu: ControlUnitEmulator) -> bool:
     return left < -0.02 and right > 0.02
 
 
+@pytest.mark.slow(seconds=6)
 def test_supervised_loop_zero_on_exception_stall_and_death(tmp_path: Path) -> None:
     emu = ControlUnitEmulator(MotorPlant())
     spy = WireSpy(emu)

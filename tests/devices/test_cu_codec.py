@@ -229,6 +229,7 @@ def _mutate(r: np.random.Generator, wire: bytes) -> tuple[bytes, bool]:
     return bytes(b), kind < 2
 
 
+@pytest.mark.slow(seconds=6)
 def test_fuzz_parser_never_accepts_garbage_or_corruption_and_locks_on():
     r = np.random.default_rng(2024)
     counts = dict(

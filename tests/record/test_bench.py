@@ -13,9 +13,12 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 from omnid.cli import main
 
 
+@pytest.mark.slow(seconds=8)
 def test_bench_drives_forward_and_stops_on_ctrl_c(tmp_path: Path, capsys) -> None:
     folder = tmp_path / "bench"
     rec = tmp_path / "bench.mcap"

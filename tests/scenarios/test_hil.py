@@ -23,6 +23,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 NEUTRAL = (0.0, 0.0)
 FORWARD = (-20.0, 0.0)  # roll < -12°: forward (thesis 4.2.2)
 BOX_NEAR_FACE_MM = 2000.0  # box-ahead course: the box's face ahead of the axle at start
@@ -63,6 +65,7 @@ def _chair(lines: list[str]) -> tuple[float, float]:
     return 0.0, 0.0
 
 
+@pytest.mark.slow(seconds=26)
 def test_omnid_run_stops_the_simulated_chair_before_a_box(tmp_path: Path) -> None:
     from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
 

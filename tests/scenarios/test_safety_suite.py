@@ -12,6 +12,7 @@ from omnid.sim.suite import SCENARIOS, clutter, run_trial, way_clear
 
 
 @pytest.mark.parametrize("kind", ["joystick", "tilt"])
+@pytest.mark.slow(seconds=7)
 def test_reversing_into_the_unseen_never_touches_the_box(kind):
     """A box 300 mm behind the chair, never seen: reversing (the head rider: turning round)
     is refused, whatever the seed."""
@@ -30,6 +31,7 @@ def test_with_the_creep_policy_reversing_into_the_unseen_is_a_noticed_bump():
 
 
 @pytest.mark.parametrize("kind", ["joystick", "tilt"])
+@pytest.mark.slow(seconds=6)
 def test_turning_beside_an_unseen_wall_never_swings_the_tail_into_it(kind):
     for seed in range(2):
         r = run_trial(SCENARIOS["turn beside an unseen wall"](kind, seed))  # type: ignore[arg-type]
@@ -38,6 +40,7 @@ def test_turning_beside_an_unseen_wall_never_swings_the_tail_into_it(kind):
 
 
 @pytest.mark.parametrize(("width", "seed"), [(900, 0), (900, 1), (780, 0)])
+@pytest.mark.slow(seconds=5)
 def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refused(width, seed):
     """Truth perception, the joystick steering through from 3.5 m off (±10°, ±80 mm): a 900 mm
     doorway is passed without a safety stop at the door; a 780 mm one (the chair 700 + 2 × 25 side margin +
@@ -62,6 +65,7 @@ def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refus
 
 
 @pytest.mark.parametrize("kind", ["joystick", "tilt"])
+@pytest.mark.slow(seconds=8)
 def test_a_thin_post_with_pipeline_perception_stops_the_chair_before_it(kind):
     # the shipped stream capture on a worker perceiving at most 10 clouds/s (the suite's time;
     # as tests/scenarios/test_scenarios.py)

@@ -30,6 +30,7 @@ PIPELINE = SimSettings(perception="pipeline", worker_period_s=0.1, perceive_time
 TRUTH = SimSettings(perception="truth")
 
 
+@pytest.mark.slow(seconds=8)
 def test_forward_at_a_wall_stops_with_the_promised_margin_and_never_touches_it():
     core = make_core()
     course = room(length_mm=3500.0)  # front wall face at x = 2500 mm
@@ -47,6 +48,7 @@ def test_forward_at_a_wall_stops_with_the_promised_margin_and_never_touches_it()
     assert result.timings["perception_cycles"] >= 40
 
 
+@pytest.mark.slow(seconds=22)
 def test_passes_a_passage_wider_than_the_chair():
     """Three starts (offset, heading, timing): no contact in any, through in at least two. One
     in eight starts captures the frames at the one pose where the pipeline puts a phantom row
@@ -70,6 +72,7 @@ def test_passes_a_passage_wider_than_the_chair():
     assert through >= 2
 
 
+@pytest.mark.slow(seconds=7)
 def test_refuses_a_passage_narrower_than_the_chair():
     core = make_core()
     course = room(passage(600.0), length_mm=6000.0)
@@ -82,6 +85,7 @@ def test_refuses_a_passage_narrower_than_the_chair():
     assert any("obstacle_stop" in r for _, r in result.refusals)
 
 
+@pytest.mark.slow(seconds=8)
 def test_stops_before_a_drop_off():
     core = make_core()
     stairs = DropOff(2200.0, 5000.0, -2000.0, 2000.0, 170.0)
@@ -94,6 +98,7 @@ def test_stops_before_a_drop_off():
     assert any("dropoff_stop" in r for _, r in result.refusals)
 
 
+@pytest.mark.slow(seconds=8)
 def test_turn_toward_a_remembered_obstacle_outside_the_laser_field_is_refused():
     from omnid.daemon.core import ControlCore
 

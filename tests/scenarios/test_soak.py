@@ -60,6 +60,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from omnid.daemon.motion import StallDetector
 from omnid.daemon.safety import Reason
@@ -100,6 +101,7 @@ class _ReasonsLogged(logging.Handler):
         self.reasons.add(record.getMessage().partition(":")[0])
 
 
+@pytest.mark.slow(seconds=22)
 def test_soak_random_riding_at_the_configured_rates(request):
     duration_s = 60.0 * float(request.config.getoption("--soak-minutes"))
     # the map's working set (its blocking evidence, kept points) grows while the chair explores

@@ -232,6 +232,7 @@ def _core():
     return make_core()
 
 
+@pytest.mark.slow(seconds=5)
 def test_closed_loop_rider_drives_at_a_wall_and_the_daemon_stops_before_it():
     from omnid.sim.rider import head_script
 
@@ -265,6 +266,7 @@ def _story_run(
     return Simulator(builtin_course(), core, settings, rider=demo_story()).run(duration_s)
 
 
+@pytest.mark.slow(seconds=13)
 def test_demo_story_reacts_to_the_chair_and_ends_with_it():
     """The reactive rider with truth perception: every step ends by what the chair did (not by
     its timeout), in order, each refusal where the thing refused stands; the run ends ~1 s
@@ -309,6 +311,7 @@ def test_reactive_rider_moves_on_after_a_timeout_when_the_chair_never_does():
     assert result.duration_s == pytest.approx(4.0 + 0.5 + 1.0, abs=0.05)
 
 
+@pytest.mark.slow(seconds=25)
 def test_demo_story_with_pipeline_perception():
     """The demo as `omnid demo` runs it: wide passage passed, narrow refused, stop before the
     stairs, turn towards box 3 (outside the laser's field) refused, nothing touched."""
