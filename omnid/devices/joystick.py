@@ -11,7 +11,9 @@ Backends, chosen by ``JoystickSettings.url``:
 - ``evdev:///dev/input/eventN`` — reads ``struct input_event`` records directly from the
   character device (no extra dependency): on 64-bit Linux ``struct timeval`` (two longs), ``u16
   type``, ``u16 code``, ``s32 value`` = 24 bytes. :class:`EvdevParser` is fed bytes, returns
-  events; axis state is committed on ``EV_SYN/SYN_REPORT``.
+  events; axis state is committed on ``EV_SYN/SYN_REPORT``. After ``SYN_DROPPED`` (the kernel's
+  buffer overran, events were lost) the stick is not valid until the next ``SYN_REPORT``,
+  then counts as centred until it reports a new position.
 - ``hid://VID:PID`` — hidapi, imported only when chosen; reports are read with a timeout and
   the axes taken from byte offsets given in the settings (``hid_x_byte``, ``hid_y_byte``).
 
@@ -305,8 +307,10 @@ class JoystickLink:
         self._query_abs_ranges(fd)
         parser = EvdevParser()
         pending = dict(self.mapper.raw)
+        dropped = False  # SYN_DROPPED seen: events are discarded up to the next SYN_REPORT
 
         async def run() -> None:
+            nonlocal pending, dropped
             loop = asyncio.get_running_loop()
             ready = asyncio.Event()
             loop.add_reader(fd, ready.set)
@@ -329,13 +333,33 @@ class JoystickLink:
                     self._alive_s = self.clock()
                     for ev in parser.feed(data):
                         self.events += 1
-                        if ev.type == EV_ABS and ev.code in pending:
+                        if ev.type == EV_SYN and ev.code == SYN_DROPPED:
+                            # the kernel's buffer overran: events were lost (a return to the
+                            # centre among them, which evdev never repeats), so the position is
+                            # unknown — not valid until resynced at the next SYN_REPORT
+                            self.dropped_syncs += 1
+                            dropped = True
+                            self._reading = None
+                            _THROTTLE.warning(
+                                "dropped",
+                                "joystick %s: events dropped by the kernel (SYN_DROPPED): "
+                                "rider input stops until resynced",
+                                self._target,
+                            )
+                        elif dropped:
+                            if ev.type == EV_SYN and ev.code == SYN_REPORT:
+                                # resync as at (re)open: counts as centred until the stick
+                                # reports a new position
+                                dropped = False
+                                self.mapper = AxisMapper(self.settings)
+                                self._query_abs_ranges(fd)
+                                pending = dict(self.mapper.raw)
+                                self._reading = self.mapper.reading(self.clock())
+                        elif ev.type == EV_ABS and ev.code in pending:
                             pending[ev.code] = ev.value
                         elif ev.type == EV_SYN and ev.code == SYN_REPORT:
                             self.mapper.raw.update(pending)
                             self._reading = self.mapper.reading(self.clock())
-                        elif ev.type == EV_SYN and ev.code == SYN_DROPPED:
-                            self.dropped_syncs += 1  # kernel buffer overran: wait for next report
             finally:
                 loop.remove_reader(fd)
                 os.close(fd)

@@ -17,6 +17,7 @@ from omnid.devices.joystick import (
     EV_KEY,
     EV_SYN,
     INPUT_EVENT,
+    SYN_DROPPED,
     SYN_REPORT,
     AxisMapper,
     EvdevParser,
@@ -174,3 +175,43 @@ def test_unplugged_joystick_reconnects_centred(tmp_path):
         port.close()
     assert centred.forward == 0.0 and centred.turn == 0.0  # held stick does not carry over
     assert reconnects == 1
+
+
+def test_syn_dropped_invalidates_the_stick_until_resynced():
+    """SYN_DROPPED: the kernel's event buffer overran and events were lost — here the stick's
+    return to the centre, which evdev never sends again. The held-forward position must not stay
+    valid: the stick is not valid until the next SYN_REPORT, then counts as centred (as after a
+    replug) until it reports a new position. (The link kept the lost forward position valid.)"""
+    master, path = _raw_pty()
+    s = JoystickSettings(
+        url=f"evdev://{path}", axis_min=-100, axis_max=100, dead_zone=0.1, stale_after_s=0.1
+    )
+
+    async def go():
+        link = JoystickLink(s)
+        await link.start()
+        os.write(master, pack_event(EV_ABS, ABS_Y, -100) + pack_event(EV_SYN, SYN_REPORT, 0))
+        await _until(lambda: link.latest is not None and link.latest.forward == 1.0)
+        # the return to centre (ABS_Y 0, SYN_REPORT) was lost in the overrun
+        os.write(master, pack_event(EV_SYN, SYN_DROPPED, 0) + pack_event(EV_ABS, ABS_Y, -100))
+        await _until(lambda: link.dropped_syncs == 1)
+        lost = link.latest
+        await asyncio.sleep(0.15)  # the link keeps vouching for the device: still not valid
+        still_lost = link.latest
+        events = link.events
+        # the kernel's next SYN_REPORT closes the dropped packet (its events are partial)
+        os.write(master, pack_event(EV_ABS, ABS_X, 10) + pack_event(EV_SYN, SYN_REPORT, 0))
+        await _until(lambda: link.events >= events + 2 and link.latest is not None)
+        resynced = link.latest
+        os.write(master, pack_event(EV_ABS, ABS_X, -100) + pack_event(EV_SYN, SYN_REPORT, 0))
+        await _until(lambda: link.latest is not None and link.latest.turn == 1.0)
+        await link.stop()
+        return lost, still_lost, resynced
+
+    try:
+        lost, still_lost, resynced = asyncio.run(go())
+    finally:
+        os.close(master)
+    assert lost is None, f"after SYN_DROPPED the lost position stays valid: {lost}"
+    assert still_lost is None
+    assert resynced.forward == 0.0 and resynced.turn == 0.0
