@@ -328,6 +328,16 @@ class ControlCore:
             log.warning("calibration_lost cleared: %.0f %% of the dots fit again", 100 * fit)
             self.calibration_lost = False
         then = self._pose_at(capture_time_s)
+        if then is None and self._poses:
+            # older than the odometry history: where the chair was then is not known, and the
+            # cloud placed as if taken here would put what it saw in the wrong place
+            self._log.log(
+                "perception_too_old",
+                f"perception: a capture {self._poses[-1][0] - capture_time_s:.1f} s old is "
+                "older than the odometry history (control.pose_history_s): not used",
+                self._poses[-1][0],
+            )
+            return
         offset = self.config.perception.rig_x_offset_mm
         source = (0.0, 0.0, 0.0)  # the laser, where it was at the capture (current rig frame)
         if then is not None and self._poses:

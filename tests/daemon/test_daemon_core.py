@@ -202,6 +202,23 @@ def test_late_perception_is_compensated_by_odometry():
     assert core.perception_time_s == 0.0
 
 
+def test_perception_older_than_the_odometry_history_is_not_entered():
+    """A cloud whose capture the odometry history no longer covers (a worker restarted while
+    its job waited: the job reaches the map seconds later) cannot be placed: it must not enter
+    the map as if it had been taken where the chair is now. (It was entered unmoved: floor seen
+    2 m back marked free ahead of the chair.)"""
+    core, m = make_core()
+    chair = Chair()
+    history = core.config.control.pose_history_s
+    steps = int(history / 0.1) + 10
+    for k in range(steps + 1):  # creeping forward for longer than the history holds
+        chair.travel = [k * MM_PER_CLOCK] * 2
+        core.on_status(chair.status(0.1 * k))
+    core.on_perception(floor_cloud(obstacle_x_mm=2000.0), capture_time_s=0.0)
+    assert m.clouds == [], "a cloud the odometry cannot place was entered unmoved"
+    assert core.perception_time_s is None
+
+
 def test_transform_cloud_rotation_keeps_world_points():
     cloud = floor_cloud()
     moved = transform_cloud(cloud, 0.0, 0.0, math.pi / 2, rig_x_offset_mm=0.0)
