@@ -600,7 +600,8 @@ class Daemon:
 
     async def _frame_reader(self, cycle: CaptureCycle) -> None:
         """Read frame pairs while the cycle wants them (flushing the queue first where it
-        asks); a camera that raises is closed and opened again (after 0.05 … 1 s)."""
+        asks); a camera that raises (whatever it raises: a malformed frame is a ProtocolError)
+        is closed and opened again (after 0.05 … 1 s)."""
         from omnid.devices.camera import open_camera
         from omnid.errors import DeviceError
 
@@ -630,9 +631,11 @@ class Daemon:
                     frame = await self._read(camera)
                     self._camera_wait_s, self._camera_failed = None, False
                     backoff = 0.05
-                except (DeviceError, OSError) as exc:
+                except Exception as exc:  # a device error, a malformed frame, a bug: reopen
                     self._camera_failed = True
                     cycle.frame_failed(f"{type(exc).__name__}: {exc}")
+                    if not isinstance(exc, DeviceError):
+                        log.debug("camera reader exception", exc_info=True)
                     self._capture_wake.set()
                     if camera is not None:
                         with contextlib.suppress(Exception):
