@@ -38,6 +38,8 @@ import pickle
 import re
 import signal
 import struct
+import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -363,15 +365,38 @@ class PerceptionWorker:
                 self._kill(f"failed at start ({exc})")
                 raise PerceptionFailed("perception worker failed at start") from None
             self._ready = True
+        # the send has the request's deadline too: a child that stops reading (frozen,
+        # thrashing) leaves a 1.2 MB send blocked on a full pipe, so it is killed, which
+        # breaks the pipe and ends the send
+        deadline = time.monotonic() + self.timeout_s
+        proc = self._proc
+        sent = threading.Event()
+
+        def stuck() -> None:
+            if not sent.is_set() and proc.is_alive():
+                proc.kill()
+
+        timer = threading.Timer(self.timeout_s, stuck)
+        timer.daemon = True
         try:
-            conn.send_bytes(payload)
-            if not conn.poll(self.timeout_s):
+            timer.start()
+            try:
+                conn.send_bytes(payload)
+            finally:
+                sent.set()
+                timer.cancel()
+            if not conn.poll(max(deadline - time.monotonic(), 0.0)):
                 self.restarts += 1
                 self._kill(f"no answer within {self.timeout_s:g} s (hung)")
                 raise PerceptionFailed(f"perceive took longer than {self.timeout_s:g} s")
             return conn.recv_bytes()
         except (EOFError, OSError) as exc:
             self.restarts += 1
+            if time.monotonic() >= deadline and not conn.closed:
+                self._kill(f"did not take the request within {self.timeout_s:g} s (hung)")
+                raise PerceptionFailed(
+                    f"perception worker did not take the request within {self.timeout_s:g} s"
+                ) from None
             code = None if self._proc is None else self._proc.exitcode
             self._kill(f"crashed (exit code {code}, {type(exc).__name__})")
             raise PerceptionFailed(f"perception worker crashed (exit code {code})") from None

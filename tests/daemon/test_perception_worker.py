@@ -98,3 +98,41 @@ def test_the_worker_runs_numpys_blas_on_one_thread():
         return float(cloud.xyz[0, 0])
 
     assert asyncio.run(main()) == 1.0
+
+
+def test_a_worker_that_stops_reading_costs_one_request_not_a_hung_perceiver():
+    """A child that no longer reads its pipe (frozen: SIGSTOP here; in the field a stalled or
+    thrashing process) while a 1.2 MB job is sent: the send filled the pipe and blocked with no
+    timeout, so the perceiver hung for good (perception stale, never recovering, nothing logged).
+    The request must fail within ``timeout_s`` and the next one go to a fresh child."""
+    import os
+    import signal
+
+    async def main() -> tuple[str, float, str]:
+        w = PerceptionWorker(None, timeout_s=0.5, nice=0, fn=faulty_perceive)
+        await w.start()
+        pid = w.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        try:
+            await asyncio.wait_for(w.perceive(capture(0, 5, shape=(480, 640))), 2.5)
+            first = "ok"
+        except PerceptionFailed as exc:
+            first = f"failed {exc}"
+        except TimeoutError:
+            first = "hung"
+            os.kill(pid, signal.SIGKILL)  # free the blocked send, so the test can end
+        took = time.monotonic() - t0
+        try:
+            cloud = await asyncio.wait_for(w.perceive(capture(0, 21)), 25.0)
+            second = f"ok {cloud.xyz[0, 0]:.0f}"
+        except (PerceptionFailed, TimeoutError) as exc:
+            second = f"failed {exc!r}"
+        await w.close()
+        return first, took, second
+
+    first, took, second = asyncio.run(main())
+    assert first.startswith("failed"), f"the request {first} (after {took:.1f} s)"
+    assert took < 0.5 + 1.5
+    assert second == "ok 21"
