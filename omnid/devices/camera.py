@@ -178,10 +178,23 @@ class StereoFrameSource:
         if self._closed:
             return
         self._closed = True
-        self._close()
-        if self._executor is not None:
-            self._executor.shutdown(wait=False, cancel_futures=True)
-            self._executor = None
+        executor, self._executor = self._executor, None
+        if executor is None:
+            self._close()
+            return
+        # released in the worker thread, after a grab that overran its deadline and still runs:
+        # never concurrently with it (cv2.VideoCapture is not thread-safe) and never on the
+        # event loop (a stalled USB device can block the release); waited for a bounded time
+        fut = asyncio.get_running_loop().run_in_executor(executor, self._close)
+        executor.shutdown(wait=False)
+        try:
+            await asyncio.wait_for(asyncio.shield(fut), self.settings.timeout_s)
+        except TimeoutError:
+            log.warning(
+                "%s: a grab still runs after %g s; the camera is released when it ends",
+                self.name,
+                self.settings.timeout_s,
+            )
 
     async def __aenter__(self) -> StereoFrameSource:
         return self

@@ -219,3 +219,62 @@ def test_image_pair_replay_loops(tmp_path):
         return [round((float((await src.read_pair())[0].mean()) - 10) / 20) for _ in range(5)]
 
     assert asyncio.run(go()) == [0, 1, 0, 1, 0]
+
+
+class _StalledDriver:
+    """A simulated camera driver whose grab stalls until ``go`` is set (a USB camera that stops
+    delivering), noting whether its resources are released while a grab still runs."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.go = threading.Event()
+        self.grabbing = False
+        self.released: list[bool] = []  # for each release: was a grab running?
+
+    def grab(self) -> tuple[np.ndarray, np.ndarray, float]:
+        self.grabbing = True
+        try:
+            self.go.wait(5.0)
+            img = np.zeros((4, 4), np.uint8)
+            return img, img, time.monotonic()
+        finally:
+            self.grabbing = False
+
+    def release(self) -> None:
+        self.released.append(self.grabbing)
+
+
+def test_a_stalled_grab_is_never_released_under_its_feet():
+    """A grab that overran its deadline keeps running in the source's worker thread; closing the
+    source then released the device at once on the event loop (cv2.VideoCapture.release()
+    while another thread is inside grab(): not thread-safe, and a stalled USB device can block
+    the release — the control loop with it). The release must wait for the grab, off the loop."""
+    from omnid.devices.camera import StereoFrameSource
+
+    driver = _StalledDriver()
+
+    class Stalled(StereoFrameSource):
+        def _read_pair_blocking(self):
+            return driver.grab()
+
+        def _close(self) -> None:
+            driver.release()
+
+    async def go() -> float:
+        src = Stalled(CameraSettings(timeout_s=0.05))
+        with pytest.raises(DeviceTimeout):
+            await src.read_pair()
+        assert driver.grabbing
+        t0 = time.monotonic()
+        await src.close()
+        took = time.monotonic() - t0
+        driver.go.set()  # the driver comes back: the grab ends, then the release
+        t_end = time.monotonic() + 2.0
+        while not driver.released and time.monotonic() < t_end:
+            await asyncio.sleep(0.01)
+        return took
+
+    took = asyncio.run(go())
+    assert driver.released == [False], f"released during a grab: {driver.released}"
+    assert took < 0.5  # close does not wait for the stalled grab
