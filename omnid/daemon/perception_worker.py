@@ -365,37 +365,40 @@ class PerceptionWorker:
                 self._kill(f"failed at start ({exc})")
                 raise PerceptionFailed("perception worker failed at start") from None
             self._ready = True
-        # the send has the request's deadline too: a child that stops reading (frozen,
-        # thrashing) leaves a 1.2 MB send blocked on a full pipe, so it is killed, which
-        # breaks the pipe and ends the send
+        # the whole exchange has the request's deadline: a child that stops reading (frozen,
+        # thrashing) leaves a 1.2 MB send blocked on a full pipe, and one that freezes half-way
+        # through its answer leaves recv_bytes waiting for the rest. A timer kills the child
+        # just after the deadline (a slow perceive is the poll's to handle), which breaks the
+        # pipe and ends the blocked call
         deadline = time.monotonic() + self.timeout_s
         proc = self._proc
-        sent = threading.Event()
+        done, fired = threading.Event(), threading.Event()
 
         def stuck() -> None:
-            if not sent.is_set() and proc.is_alive():
+            if not done.is_set() and proc.is_alive():
+                fired.set()
                 proc.kill()
 
-        timer = threading.Timer(self.timeout_s, stuck)
+        timer = threading.Timer(self.timeout_s + 0.1, stuck)
         timer.daemon = True
         try:
             timer.start()
             try:
                 conn.send_bytes(payload)
+                if not conn.poll(max(deadline - time.monotonic(), 0.0)):
+                    self.restarts += 1
+                    self._kill(f"no answer within {self.timeout_s:g} s (hung)")
+                    raise PerceptionFailed(f"perceive took longer than {self.timeout_s:g} s")
+                return conn.recv_bytes()
             finally:
-                sent.set()
+                done.set()
                 timer.cancel()
-            if not conn.poll(max(deadline - time.monotonic(), 0.0)):
-                self.restarts += 1
-                self._kill(f"no answer within {self.timeout_s:g} s (hung)")
-                raise PerceptionFailed(f"perceive took longer than {self.timeout_s:g} s")
-            return conn.recv_bytes()
         except (EOFError, OSError) as exc:
             self.restarts += 1
-            if time.monotonic() >= deadline and not conn.closed:
-                self._kill(f"did not take the request within {self.timeout_s:g} s (hung)")
+            if fired.is_set():
+                self._kill(f"request not through within {self.timeout_s:g} s (hung)")
                 raise PerceptionFailed(
-                    f"perception worker did not take the request within {self.timeout_s:g} s"
+                    f"perception worker hung: request not through within {self.timeout_s:g} s"
                 ) from None
             code = None if self._proc is None else self._proc.exitcode
             self._kill(f"crashed (exit code {code}, {type(exc).__name__})")

@@ -141,6 +141,25 @@ def faulty_perceive(capture, calib, method, settings) -> PointCloud:
     return one_floor_point(float(capture.base1[0, 0]))
 
 
+def half_reply_perceive(capture, calib, method, settings) -> PointCloud:
+    """A perceive stand-in for a worker that freezes while it answers: it writes the start of a
+    1 MB reply to its pipe to the daemon (the one socket the child holds) and then hangs."""
+    import os
+    import stat
+    import struct
+    import time
+
+    for name in os.listdir("/proc/self/fd"):
+        fd = int(name)
+        try:
+            if stat.S_ISSOCK(os.fstat(fd).st_mode):
+                os.write(fd, struct.pack("!i", 1_000_000) + b"C" * 100)
+        except OSError:
+            continue
+    time.sleep(3600)
+    raise AssertionError("unreachable")
+
+
 def blas_threads_perceive(capture, calib, method, settings) -> PointCloud:
     """A perceive stand-in that reports, as its one point's x, the most threads any OpenBLAS
     in the worker process may use (0: none loaded)."""

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from daemon_helpers import blas_threads_perceive, faulty_perceive
+from daemon_helpers import blas_threads_perceive, faulty_perceive, half_reply_perceive
 
 from omnid.core.types import StereoCapture
 from omnid.daemon.perception_worker import (
@@ -136,3 +136,33 @@ def test_a_worker_that_stops_reading_costs_one_request_not_a_hung_perceiver():
     assert first.startswith("failed"), f"the request {first} (after {took:.1f} s)"
     assert took < 0.5 + 1.5
     assert second == "ok 21"
+
+
+def test_a_worker_that_freezes_mid_reply_costs_one_request():
+    """The answer's first bytes came (poll returned), then the child froze: recv_bytes waited
+    for the rest with no timeout, and the perceiver hung for good. The whole request — send,
+    wait, receive — must end within ``timeout_s``."""
+
+    async def main() -> tuple[str, float]:
+        w = PerceptionWorker(None, timeout_s=0.5, nice=0, fn=half_reply_perceive)
+        await w.start()
+        pid = w.pid
+        t0 = time.monotonic()
+        try:
+            await asyncio.wait_for(w.perceive(capture(0, 5)), 2.5)
+            out = "ok"
+        except PerceptionFailed as exc:
+            out = f"failed {exc}"
+        except TimeoutError:
+            out = "hung"
+            import os
+            import signal
+
+            os.kill(pid, signal.SIGKILL)  # free the blocked receive, so the test can end
+        took = time.monotonic() - t0
+        await w.close()
+        return out, took
+
+    out, took = asyncio.run(main())
+    assert out.startswith("failed"), f"the request {out} (after {took:.1f} s)"
+    assert took < 0.5 + 1.5
