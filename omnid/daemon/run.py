@@ -165,6 +165,13 @@ def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
     return 0.5 * (t_req_s + t_got_s)
 
 
+def _close_when_open(fut: asyncio.Future[Any]) -> None:
+    """Done callback of a camera open nobody waits for any more: close the source it gave."""
+    if not fut.cancelled() and fut.exception() is None:
+        task = asyncio.ensure_future(fut.result().close())
+        task.add_done_callback(lambda t: t.cancelled() or t.exception())
+
+
 class Daemon:
     """Owns the core, the device links and the tasks (see the module docstring)."""
 
@@ -602,12 +609,21 @@ class Daemon:
         """Read frame pairs while the cycle wants them (flushing the queue first where it
         asks); a camera that raises (whatever it raises: a malformed frame is a ProtocolError)
         is closed and opened again (after 0.05 … 1 s)."""
+        import concurrent.futures
+
         from omnid.devices.camera import open_camera
-        from omnid.errors import DeviceError
+        from omnid.errors import DeviceError, DeviceTimeout
 
         camera: Any = None
         flushed = -1
         backoff = 0.05
+        # cv2 opens and configures the devices synchronously (a USB camera negotiating its
+        # format, a device resetting): in a thread of its own, never on the event loop. An
+        # open that outlasts the camera's timeout fails the wait, not the open: the next
+        # attempt waits on the same one
+        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="omnid-camera-open")
+        opening: asyncio.Future[Any] | None = None
+        open_wait_s = self.config.camera.timeout_s
         try:
             while not self._stop.is_set():
                 if not cycle.wants_frame():
@@ -624,7 +640,21 @@ class Daemon:
                         camera = None
                     self._camera_reset = False
                     if camera is None:
-                        camera = open_camera(self.config.camera)
+                        if opening is None:
+                            opening = asyncio.get_running_loop().run_in_executor(
+                                pool, open_camera, self.config.camera
+                            )
+                        try:
+                            camera = await asyncio.wait_for(asyncio.shield(opening), open_wait_s)
+                        except TimeoutError:
+                            raise DeviceTimeout(
+                                f"camera: not open within {open_wait_s:g} s (still trying)"
+                            ) from None
+                        except BaseException:
+                            if opening.done():
+                                opening = None  # the open failed: a fresh one next time
+                            raise
+                        opening = None
                     if cycle.flush_needed and flushed != cycle.frame_requests:
                         await camera.flush()
                         flushed = cycle.frame_requests
@@ -651,6 +681,9 @@ class Daemon:
             if camera is not None:
                 with contextlib.suppress(Exception):
                     await camera.close()
+            if opening is not None:  # an open still running: close what it gives
+                opening.add_done_callback(_close_when_open)
+            pool.shutdown(wait=False)
 
     async def _perceiver(self) -> None:
         """Perceive the newest job in the worker, then enter the cloud into the map — in a gap

@@ -1,5 +1,6 @@
-"""The daemon's camera reader (``Daemon._frame_reader``) against a camera that misbehaves: a
-frame server on a Unix socket (the ``sim+unix://`` wire format) that sends malformed frames."""
+"""The daemon's camera reader (``Daemon._frame_reader``) against cameras that misbehave: a
+frame server on a Unix socket (the ``sim+unix://`` wire format) that sends malformed frames,
+and replay videos behind FIFOs that stand in for devices slow to open."""
 
 from __future__ import annotations
 
@@ -92,3 +93,66 @@ def test_a_malformed_frame_costs_a_frame_not_the_camera_reader(tmp_path):
     assert died is None, f"the camera reader died: {died!r}"
     assert frames >= 1
     assert any(f.kind == "camera" and "header" in f.message for f in failures), failures
+
+
+def test_a_camera_slow_to_open_does_not_block_the_event_loop(tmp_path):
+    """Opening the cameras (cv2.VideoCapture: a USB camera negotiating its format, a device
+    resetting) ran on the event loop: the control loop and the control-unit link stood still
+    until the open returned. Here two FIFOs stand in for such devices (replay videos whose
+    bytes come only after 0.8 s): the event loop must keep running meanwhile, and an open
+    slower than the camera's timeout is reported (a camera failure) but not abandoned."""
+    import os
+
+    import cv2
+
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for k in range(5):
+        writer.write(np.full((48, 64, 3), 20 * k, np.uint8))
+    writer.release()
+    data = video.read_bytes()
+    cams = tmp_path / "cams"
+    cams.mkdir()
+    for i in (1, 2):
+        os.mkfifo(cams / f"cam{i}.avi")
+
+    def feed(path) -> None:
+        time.sleep(0.8)  # the device answers late
+        with open(path, "wb") as f:
+            f.write(data)
+
+    feeders = [
+        threading.Thread(target=feed, args=(cams / f"cam{i}.avi",), daemon=True) for i in (1, 2)
+    ]
+    cfg = tmp_path / "omnid.yaml"
+    cfg.write_text(
+        f"perception:\n  enabled: false\ncamera:\n  url: replay://{cams}\n  timeout_s: 0.3\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+
+    async def go():
+        d = Daemon(ConfigHolder(cfg), notifier=None)
+        cycle = CaptureCycle(CaptureSettings(policy="stream"), start_s=time.monotonic())
+        gaps, failures = [], []
+        for t in feeders:
+            t.start()
+        reader = asyncio.create_task(d._frame_reader(cycle))
+        last = time.monotonic()
+        t_end = last + 2.5
+        while d.stats.frames_read < 1 and time.monotonic() < t_end:
+            await asyncio.sleep(0.01)
+            now = time.monotonic()
+            gaps.append(now - last)
+            last = now
+            failures.extend(o for o in cycle.poll(now) if isinstance(o, CaptureFailure))
+        d._stop.set()
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(reader, 2.0)
+        return d.stats.frames_read, max(gaps), failures
+
+    frames, worst_gap, failures = asyncio.run(go())
+    for t in feeders:
+        t.join(2.0)
+    assert frames >= 1
+    assert worst_gap < 0.3, f"the event loop stood still for {worst_gap:.2f} s"
+    assert any("not open within" in f.message for f in failures), failures
