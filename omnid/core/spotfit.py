@@ -317,18 +317,27 @@ def _update(
     win_r, win_c = st.win_r[k], st.win_c[k]
     cr, cc, s, mass = st.cr[k], st.cc[k], st.s[k], st.mass[k]
     b0, br, bc = st.b0[k], st.br[k], st.bc[k]
-    # (rows and columns stacked, (2n, size): each per-axis function is one call for both)
+    local = np.full(len(st.cr), -1, np.intp)
+    local[k] = np.arange(n)
+    i, j = local[pair_i], pair_j
+    p = len(i)
+    # Every 1-D profile of the step in one call, stacked: the dots' own rows and columns (2n,
+    # size), then each neighbour's rows and columns over the window it falls in (2p, size).
     u = np.concatenate([win_r, win_c]) - np.concatenate([cr, cc])[:, None]
     ur, uc = u[:n], u[n:]
     size = u.shape[1]
     s2 = np.concatenate([s, s])[:, None]
-    g, dg, sg = window_gaussian(u[:, :1], size, s2)
-    gr, gc, dr, dc, sr, sc = g[:n], g[n:], dg[:n], dg[n:], sg[:n], sg[n:]
+    sj = st.s[j, None]
+    g, dg, sg = window_gaussian(
+        np.concatenate([u[:, :1], win_r[i, :1] - st.cr[j, None], win_c[i, :1] - st.cc[j, None]]),
+        size,
+        np.concatenate([s2, sj, sj]),
+    )
+    gjr, gjc = g[2 * n : 2 * n + p], g[2 * n + p :]
+    g, dg, sg = g[: 2 * n], dg[: 2 * n], sg[: 2 * n]
+    gr, gc = g[:n], g[n:]
     wrc = np.exp(u * u * (-0.5 / (TAPER_PER_SIGMA * s2) ** 2))
-    wr, wc = wrc[:n], wrc[n:]
     data = st.win[k]
-    local = np.full(len(st.cr), -1, np.intp)
-    local[k] = np.arange(n)
     if st.sat is not None:
         sat = st.sat[k]
         hit = np.flatnonzero(sat.any(axis=(1, 2)))
@@ -338,23 +347,21 @@ def _update(
             model = mass[hit, None, None] * gr[hit, :, None] * gc[hit, None, :]
             model += b0[hit, None, None] + br[hit, None, None] * ur[hit, :, None]
             model += bc[hit, None, None] * uc[hit, None, :]
-            if len(pair_i):
-                model += _neighbour_light(local[pair_i], pair_j, hit, win_r, win_c, st)
+            if p:
+                model += _neighbour_light(i, j, hit, gjr, gjc, st, n)
             data = data.copy()
             data[hit] = np.where(sat[hit], np.maximum(data[hit], model), data[hit])
-    # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}; every basis is a sum of row ⊗ column
-    # products of them, so every weighted window sum is a product of 1-D sums or of
-    # weighted row vectors · data · weighted column vectors.
-    one = np.ones_like(ur)
-    fr = np.stack([gr, one, sr, dr, ur], axis=1)  # (n, 5, size)
-    fc = np.stack([gc, one, sc, dc, uc], axis=1)
-    frw = fr * wr[:, None, :]
-    fcw = np.swapaxes(fc * wc[:, None, :], 1, 2)  # (n, size, 5)
+    # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}, rows then columns (2n, 5, size); every
+    # basis is a sum of row ⊗ column products of them, so every weighted window sum is a
+    # product of 1-D sums or of weighted row vectors · data · weighted column vectors.
+    f = np.stack([g, np.ones_like(u), sg, dg, u], axis=1)
+    fw = f * wrc[:, None, :]
+    frw, fcw = fw[:n], np.swapaxes(fw[n:], 1, 2)  # (n, 5, size), (n, size, 5)
     q = frw @ data @ fcw  # (n, 5, 5)
-    if len(pair_i):
-        q -= _neighbour_sums(local[pair_i], pair_j, frw, fcw, win_r, win_c, st, n)
-    pr = frw @ np.swapaxes(fr, 1, 2)  # (n, 5, 5) weighted 1-D sums of products, rows
-    pc = np.swapaxes(fcw, 1, 2) @ np.swapaxes(fc, 1, 2)  # columns
+    if p:
+        q -= _neighbour_sums(i, j, frw, fcw, gjr, gjc, st, n)
+    pp = fw @ np.swapaxes(f, 1, 2)  # (2n, 5, 5) weighted 1-D sums of products: rows, columns
+    pr, pc = pp[:n], pp[n:]
     # The current model A·G⊗G + b0·1⊗1 + b_r·u⊗1 + b_c·1⊗u summed like the data: the
     # residual's sums, i.e. the exact gradient.
     q -= mass[:, None, None] * pr[:, :, 0, None] * pc[:, None, :, 0]
@@ -417,43 +424,27 @@ def _gauss_newton_step(
     return tuple(out)
 
 
-def _neighbour_profiles(
-    i: NDArray[np.intp],
-    j: NDArray[np.intp],
-    win_r: NDArray[np.float64],
-    win_c: NDArray[np.float64],
-    st: _FitState,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The 1-D row and column profiles (pairs, size) of the neighbour j's current model over the
-    window of the dot i, for each pair (a model is separable: the window's light is their outer
-    product times the neighbour's mass)."""
-    size = win_r.shape[1]
-    sj = st.s[j, None]
-    u0 = np.concatenate([win_r[i, :1] - st.cr[j, None], win_c[i, :1] - st.cc[j, None]])
-    g = window_gaussian(u0, size, np.concatenate([sj, sj]), derivatives=False)[0]
-    return g[: len(i)], g[len(i) :]
-
-
 def _neighbour_light(
     i: NDArray[np.intp],
     j: NDArray[np.intp],
     hit: NDArray[np.intp],
-    win_r: NDArray[np.float64],
-    win_c: NDArray[np.float64],
+    gjr: NDArray[np.float64],
+    gjc: NDArray[np.float64],
     st: _FitState,
+    n: int,
 ) -> NDArray[np.float64]:
     """(len(hit), size, size): the current models of the neighbours j (indices into ``st``)
-    rendered in the windows of the dots ``hit`` (indices into ``win_r``, ``win_c``, as the
-    pairs' i; pairs sorted by i)."""
-    size = win_r.shape[1]
+    rendered in the windows of those of the n dots i (pairs sorted by i) that are ``hit``,
+    from each pair's row and column profiles ``gjr``, ``gjc`` (pairs, size): a model is
+    separable, its light in a window the outer product of the two times its mass."""
+    size = gjr.shape[1]
     out = np.zeros((len(hit), size, size))
-    slot = np.full(len(win_r), -1, np.intp)
+    slot = np.full(n, -1, np.intp)
     slot[hit] = np.arange(len(hit))
     keep = slot[i] >= 0
     if not keep.any():
         return out
-    i, j = i[keep], j[keep]
-    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
+    i, j, gjr, gjc = i[keep], j[keep], gjr[keep], gjc[keep]
     light = st.mass[j, None, None] * gjr[:, :, None] * gjc[:, None, :]
     starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
     out[slot[i[starts]]] = np.add.reduceat(light, starts, axis=0)
@@ -465,16 +456,15 @@ def _neighbour_sums(
     j: NDArray[np.intp],
     frw: NDArray[np.float64],
     fcw: NDArray[np.float64],
-    win_r: NDArray[np.float64],
-    win_c: NDArray[np.float64],
+    gjr: NDArray[np.float64],
+    gjc: NDArray[np.float64],
     st: _FitState,
     n: int,
 ) -> NDArray[np.float64]:
     """(n, 5, 5): what the current models of the neighbours j (indices into ``st``) add to the
-    window sums of the dots i (indices into ``frw``, ``fcw``, ``win_r``, ``win_c``; pairs
-    sorted by i). A model is separable, so each pair's share is an outer product of two 1-D
-    overlaps."""
-    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
+    window sums of the dots i (indices into ``frw``, ``fcw``; pairs sorted by i), from each
+    pair's row and column profiles ``gjr``, ``gjc`` (pairs, size): a model is separable, so
+    each pair's share is an outer product of two 1-D overlaps."""
     vr = (frw[i] @ gjr[:, :, None])[:, :, 0]  # (pairs, 5)
     vc = (gjc[:, None, :] @ fcw[i])[:, 0, :]
     contrib = (st.mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
