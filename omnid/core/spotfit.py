@@ -526,14 +526,16 @@ _PAIR_I1, _PAIR_I2 = (
     )
 )
 del _ii, _sep_i
-_PAIR_SEP = (_PAIR_I1 - _PAIR_I2) * BLEND_STEP
-_PAIR_OVERLAP = np.exp(-0.25 * _PAIR_SEP**2)
 _PAIR_INTERIOR = (
     (_lo < _PAIR_I1 - _PAIR_I2)
     & (_hi > _PAIR_I1 - _PAIR_I2)
     & (_PAIR_I2 > 0)
     & (len(_BLEND_T) - 1 > _PAIR_I1)
 )
+_PAIR_SEP = (_PAIR_I1 - _PAIR_I2) * BLEND_STEP
+_PAIR_OVERLAP = np.exp(-0.25 * _PAIR_SEP**2)
+_PAIR_SUM = _PAIR_I1 + _PAIR_I2
+_PAIR_T = np.column_stack([_BLEND_T[_PAIR_I1], _BLEND_T[_PAIR_I2]])
 del _lo, _hi
 
 
@@ -590,7 +592,8 @@ def blend_test(
     the log-likelihood ratio at the noise s_n (the sensor's ``noise_gray``, or the window's
     residual where that is larger: shot noise, speckle, halos), less the Bayesian information
     criterion's price of the two more parameters over the window's m pixels. The two spots'
-    positions are refined by a parabola through the best hypothesis and its neighbours.
+    positions are the best hypothesis's, on the grid (:data:`BLEND_STEP` s; the joint fit
+    that follows a split refines them).
     """
     n = len(r)
     half = window_half_px(sigma_px)
@@ -643,32 +646,22 @@ def blend_test(
     # two round spots at t1 > 0 > t2 on the line
     gs, gy, gg = light[:n, ks:], light[n:, ks:], square[:, ks:]
     mean_s, mean_y = (1.0 / s0)[:, None], (sy / s0)[:, None]
-    each = np.arange(n)[:, None]
     # each position's own terms, once (the hypotheses pair them)
     a_own = gg[:, ::2] - gs * gs * mean_s  # Σ w g_t² − (Σ w g_t)²/S0
     b_own = gy - gs * mean_y
 
-    def two_spots(
-        i1: NDArray[np.intp], i2: NDArray[np.intp], overlap: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """SSR and the two amplitudes of the hypotheses (positions i1 > i2 on _BLEND_T;
-        ``overlap`` exp(−(t1 − t2)²/4), the two spots' product's factor)."""
-
-        def take(a: NDArray[np.float64], i: NDArray[np.intp]) -> NDArray[np.float64]:
-            return a[:, i] if i.ndim == 1 else a[each, i]
-
-        a11, a22 = take(a_own, i1), take(a_own, i2)
-        a12 = overlap * take(gg, i1 + i2) - take(gs, i1) * take(gs, i2) * mean_s
-        b_1, b_2 = take(b_own, i1), take(b_own, i2)
-        det = a11 * a22 - a12 * a12
-        ok = det > 1e-9 * np.maximum(a11 * a22, 1e-300)
-        det = np.where(ok, det, 1.0)
-        amp1 = (a22 * b_1 - a12 * b_2) / det
-        amp2 = (a11 * b_2 - a12 * b_1) / det
-        ssr = base[:, None] - (amp1 * b_1 + amp2 * b_2)
-        return np.where(ok & (amp1 > 0) & (amp2 > 0), ssr, np.inf), amp1, amp2
-
-    ssr2_all, amp1, amp2 = two_spots(_PAIR_I1, _PAIR_I2, _PAIR_OVERLAP)
+    # every hypothesis's SSR and two amplitudes
+    a11, a22 = a_own[:, _PAIR_I1], a_own[:, _PAIR_I2]
+    a12 = _PAIR_OVERLAP * gg[:, _PAIR_SUM] - gs[:, _PAIR_I1] * gs[:, _PAIR_I2] * mean_s
+    b_1, b_2 = b_own[:, _PAIR_I1], b_own[:, _PAIR_I2]
+    det = a11 * a22 - a12 * a12
+    ok = det > 1e-9 * np.maximum(a11 * a22, 1e-300)
+    det = np.where(ok, det, 1.0)
+    amp1 = (a22 * b_1 - a12 * b_2) / det
+    amp2 = (a11 * b_2 - a12 * b_1) / det
+    ssr2_all = np.where(
+        ok & (amp1 > 0) & (amp2 > 0), base[:, None] - (amp1 * b_1 + amp2 * b_2), np.inf
+    )
     best = np.argmin(ssr2_all, axis=1)
     rows = np.arange(n)
     ssr2 = ssr2_all[rows, best]
@@ -676,28 +669,14 @@ def blend_test(
     with np.errstate(invalid="ignore"):
         evidence = (ssr1 - ssr2) / np.maximum(s2, 1e-12) - 2.0 * math.log(m)
     evidence = np.where(np.isfinite(evidence), evidence, -np.inf)
-    b1i, b2i = _PAIR_I1[best], _PAIR_I2[best]
     interior = _PAIR_INTERIOR[best] & np.isfinite(ssr2)
-    t1, t2 = _BLEND_T[b1i], _BLEND_T[b2i]
-    if np.any(interior & (evidence > 0)):
-        # parabolas through the best and its neighbours, moving one spot at a time (a
-        # neighbour off the grid or with the spots' order swapped is no hypothesis)
-        last = len(_BLEND_T) - 1
-        n1 = np.column_stack([np.maximum(b1i - 1, 0), np.minimum(b1i + 1, last), b2i, b2i])
-        n2 = np.column_stack([b1i, b1i, np.maximum(b2i - 1, 0), np.minimum(b2i + 1, last)])
-        near, _, _ = two_spots(n1, n2, np.exp(-0.25 * ((n1 - n2) * BLEND_STEP) ** 2))
-        near = np.where(n1 > n2, near, np.inf)
-        t1 = t1 + _vertex(near[:, 0], ssr2, near[:, 1]) * BLEND_STEP
-        t2 = t2 + _vertex(near[:, 2], ssr2, near[:, 3]) * BLEND_STEP
-    ax = axis[:, None, :]
-    centres = np.column_stack([r, c])[:, None, :] + (
-        scale * np.stack([t1, t2], axis=1)[:, :, None] * ax
-    )
+    t = _PAIR_T[best]  # (n, 2): t1, t2
+    centres = np.column_stack([r, c])[:, None, :] + scale * t[:, :, None] * axis[:, None, :]
     return BlendTest(
         evidence,
         centres,
         np.column_stack([amp1[rows, best], amp2[rows, best]]),
-        (t1 - t2) * scale / sigma_px,
+        (t[:, 0] - t[:, 1]) * scale / sigma_px,
         interior,
     )
 
@@ -733,15 +712,3 @@ def _neighbours_in_windows(
     pad_r[ki, slot] = prof_r
     pad_c[ki, slot] = prof_c
     return np.matmul(np.swapaxes(pad_r, 1, 2), pad_c).reshape(n, size * size)
-
-
-def _vertex(
-    lo: NDArray[np.float64], mid: NDArray[np.float64], hi: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """The offset (steps, within ±½) of the vertex of the parabola through (−1, lo), (0, mid),
-    (1, hi); 0 where it is not a minimum (or a neighbour is no hypothesis)."""
-    with np.errstate(invalid="ignore"):
-        curv = lo - 2.0 * mid + hi
-        ok = np.isfinite(curv) & (curv > 0)
-        step = 0.5 * (lo - hi) / np.where(ok, curv, 1.0)
-    return np.where(ok, clip(step, -0.5, 0.5), 0.0)
