@@ -30,6 +30,7 @@ is, and the fit costs three passes of a few vectorised operations per dot.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -225,16 +226,26 @@ def fit_spots(
     win_c = cols[:, None] + off[None, :]
     # (the held dots' windows are never read: only the fitted dots' pixels are gathered)
     own = slice(None) if free is None else np.flatnonzero(free)
-    rr = clip(win_r[own].astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
-    cc_ = clip(win_c[own].astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
-    inside = ((win_r[own] >= 0) & (win_r[own] < image.shape[0]))[:, :, None]
-    inside = inside & ((win_c[own] >= 0) & (win_c[own] < image.shape[1]))[:, None, :]
-    win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
-    sat_all: NDArray[np.bool_] | None = None
-    if saturated is not None:
-        sat_all = saturated[rr, cc_] & inside
-        if not sat_all.any():
-            sat_all = None
+    o_rows, o_cols = rows[own], cols[own]
+    if len(o_rows) and (
+        min(o_rows.min(), o_cols.min()) >= h
+        and o_rows.max() < image.shape[0] - h
+        and o_cols.max() < image.shape[1] - h
+    ):
+        # (every window inside the image, as nearly always)
+        rr = win_r[own].astype(np.intp)[:, :, None]
+        cc_ = win_c[own].astype(np.intp)[:, None, :]
+        win = image[rr, cc_].astype(np.float64)
+        sat_all = None if saturated is None else saturated[rr, cc_]
+    else:
+        rr = clip(win_r[own].astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
+        cc_ = clip(win_c[own].astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
+        inside = ((win_r[own] >= 0) & (win_r[own] < image.shape[0]))[:, :, None]
+        inside = inside & ((win_c[own] >= 0) & (win_c[own] < image.shape[1]))[:, None, :]
+        win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside: nothing
+        sat_all = None if saturated is None else saturated[rr, cc_] & inside
+    if sat_all is not None and not sat_all.any():
+        sat_all = None
     if free is not None:
         size = len(off)
         win_all = np.zeros((n, size, size))
@@ -597,16 +608,17 @@ def blend_test(
     """
     n = len(r)
     half = window_half_px(sigma_px)
-    off = np.arange(-half, half + 1)
+    size = 2 * half + 1
+    off_r, off_c = _window_offsets(half)
     ir, ic = np.rint(r).astype(np.intp), np.rint(c).astype(np.intp)
-    pr = clip(ir[:, None] + np.repeat(off, len(off))[None, :], 0, image.shape[0] - 1)
-    pc = clip(ic[:, None] + np.tile(off, len(off))[None, :], 0, image.shape[1] - 1)
+    pr = clip(ir[:, None] + off_r, 0, image.shape[0] - 1)
+    pc = clip(ic[:, None] + off_c, 0, image.shape[1] - 1)
     y = image[pr, pc].astype(np.float64)
     wt = np.ones_like(y) if valid is None else valid[pr, pc].astype(np.float64)
     m = y.shape[1]
     scale = math.sqrt(sigma_px * sigma_px + 1.0 / 12.0)
     if neighbours is not None and len(neighbours[0]):
-        y -= _neighbours_in_windows(pr, pc, len(off), scale, neighbours)
+        y -= _neighbours_in_windows(pr, pc, size, scale, neighbours)
     er, ec = axis[:, 0:1], axis[:, 1:2]
     dr, dc = pr - r[:, None], pc - c[:, None]
     along = (dr * er + dc * ec) / scale
@@ -679,6 +691,15 @@ def blend_test(
         (t[:, 0] - t[:, 1]) * scale / sigma_px,
         interior,
     )
+
+
+@functools.lru_cache(maxsize=16)
+def _window_offsets(half: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The row and column offsets (1, size²; row-major) of a square window of ±``half`` px."""
+    off = np.arange(-half, half + 1)
+    rows, cols = np.repeat(off, len(off))[None, :], np.tile(off, len(off))[None, :]
+    rows.flags.writeable = cols.flags.writeable = False  # (shared: read only)
+    return rows, cols
 
 
 def _neighbours_in_windows(
