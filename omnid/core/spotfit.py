@@ -365,7 +365,8 @@ def _update(
     # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}, rows then columns (2n, 5, size); every
     # basis is a sum of row ⊗ column products of them, so every weighted window sum is a
     # product of 1-D sums or of weighted row vectors · data · weighted column vectors.
-    f = np.stack([g, np.ones_like(u), sg, dg, u], axis=1)
+    f = np.empty((2 * n, 5, size))  # (filled in place: np.stack costs more than the data)
+    f[:, 0], f[:, 1], f[:, 2], f[:, 3], f[:, 4] = g, 1.0, sg, dg, u
     fw = f * wrc[:, None, :]
     frw, fcw = fw[:n], np.swapaxes(fw[n:], 1, 2)  # (n, 5, size), (n, size, 5)
     q = frw @ data @ fcw  # (n, 5, 5)
@@ -435,6 +436,14 @@ def _gauss_newton_step(
     return tuple(out)
 
 
+def _run_starts(i: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Where each run of equal values of the sorted, non-empty ``i`` starts."""
+    new = np.empty(len(i), dtype=bool)
+    new[0] = True
+    np.not_equal(i[1:], i[:-1], out=new[1:])
+    return np.flatnonzero(new)
+
+
 def _neighbour_light(
     i: NDArray[np.intp],
     j: NDArray[np.intp],
@@ -457,7 +466,7 @@ def _neighbour_light(
         return out
     i, j, gjr, gjc = i[keep], j[keep], gjr[keep], gjc[keep]
     light = st.mass[j, None, None] * gjr[:, :, None] * gjc[:, None, :]
-    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    starts = _run_starts(i)
     out[slot[i[starts]]] = np.add.reduceat(light, starts, axis=0)
     return out
 
@@ -480,7 +489,7 @@ def _neighbour_sums(
     vc = (gjc[:, None, :] @ fcw[i])[:, 0, :]
     contrib = (st.mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
     out = np.zeros((n, 25))
-    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    starts = _run_starts(i)
     out[i[starts]] = np.add.reduceat(contrib, starts, axis=0)
     return out.reshape(n, 5, 5)
 
