@@ -30,6 +30,7 @@ is, and the fit costs three passes of a few vectorised operations per dot.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -225,16 +226,26 @@ def fit_spots(
     win_c = cols[:, None] + off[None, :]
     # (the held dots' windows are never read: only the fitted dots' pixels are gathered)
     own = slice(None) if free is None else np.flatnonzero(free)
-    rr = clip(win_r[own].astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
-    cc_ = clip(win_c[own].astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
-    inside = ((win_r[own] >= 0) & (win_r[own] < image.shape[0]))[:, :, None]
-    inside = inside & ((win_c[own] >= 0) & (win_c[own] < image.shape[1]))[:, None, :]
-    win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside the image: nothing
-    sat_all: NDArray[np.bool_] | None = None
-    if saturated is not None:
-        sat_all = saturated[rr, cc_] & inside
-        if not sat_all.any():
-            sat_all = None
+    o_rows, o_cols = rows[own], cols[own]
+    if len(o_rows) and (
+        min(o_rows.min(), o_cols.min()) >= h
+        and o_rows.max() < image.shape[0] - h
+        and o_cols.max() < image.shape[1] - h
+    ):
+        # (every window inside the image, as nearly always)
+        rr = win_r[own].astype(np.intp)[:, :, None]
+        cc_ = win_c[own].astype(np.intp)[:, None, :]
+        win = image[rr, cc_].astype(np.float64)
+        sat_all = None if saturated is None else saturated[rr, cc_]
+    else:
+        rr = clip(win_r[own].astype(np.intp), 0, image.shape[0] - 1)[:, :, None]
+        cc_ = clip(win_c[own].astype(np.intp), 0, image.shape[1] - 1)[:, None, :]
+        inside = ((win_r[own] >= 0) & (win_r[own] < image.shape[0]))[:, :, None]
+        inside = inside & ((win_c[own] >= 0) & (win_c[own] < image.shape[1]))[:, None, :]
+        win = np.where(inside, image[rr, cc_], 0.0).astype(np.float64)  # outside: nothing
+        sat_all = None if saturated is None else saturated[rr, cc_] & inside
+    if sat_all is not None and not sat_all.any():
+        sat_all = None
     if free is not None:
         size = len(off)
         win_all = np.zeros((n, size, size))
@@ -317,18 +328,27 @@ def _update(
     win_r, win_c = st.win_r[k], st.win_c[k]
     cr, cc, s, mass = st.cr[k], st.cc[k], st.s[k], st.mass[k]
     b0, br, bc = st.b0[k], st.br[k], st.bc[k]
-    # (rows and columns stacked, (2n, size): each per-axis function is one call for both)
+    local = np.full(len(st.cr), -1, np.intp)
+    local[k] = np.arange(n)
+    i, j = local[pair_i], pair_j
+    p = len(i)
+    # Every 1-D profile of the step in one call, stacked: the dots' own rows and columns (2n,
+    # size), then each neighbour's rows and columns over the window it falls in (2p, size).
     u = np.concatenate([win_r, win_c]) - np.concatenate([cr, cc])[:, None]
     ur, uc = u[:n], u[n:]
     size = u.shape[1]
     s2 = np.concatenate([s, s])[:, None]
-    g, dg, sg = window_gaussian(u[:, :1], size, s2)
-    gr, gc, dr, dc, sr, sc = g[:n], g[n:], dg[:n], dg[n:], sg[:n], sg[n:]
+    sj = st.s[j, None]
+    g, dg, sg = window_gaussian(
+        np.concatenate([u[:, :1], win_r[i, :1] - st.cr[j, None], win_c[i, :1] - st.cc[j, None]]),
+        size,
+        np.concatenate([s2, sj, sj]),
+    )
+    gjr, gjc = g[2 * n : 2 * n + p], g[2 * n + p :]
+    g, dg, sg = g[: 2 * n], dg[: 2 * n], sg[: 2 * n]
+    gr, gc = g[:n], g[n:]
     wrc = np.exp(u * u * (-0.5 / (TAPER_PER_SIGMA * s2) ** 2))
-    wr, wc = wrc[:n], wrc[n:]
     data = st.win[k]
-    local = np.full(len(st.cr), -1, np.intp)
-    local[k] = np.arange(n)
     if st.sat is not None:
         sat = st.sat[k]
         hit = np.flatnonzero(sat.any(axis=(1, 2)))
@@ -338,23 +358,22 @@ def _update(
             model = mass[hit, None, None] * gr[hit, :, None] * gc[hit, None, :]
             model += b0[hit, None, None] + br[hit, None, None] * ur[hit, :, None]
             model += bc[hit, None, None] * uc[hit, None, :]
-            if len(pair_i):
-                model += _neighbour_light(local[pair_i], pair_j, hit, win_r, win_c, st)
+            if p:
+                model += _neighbour_light(i, j, hit, gjr, gjc, st, n)
             data = data.copy()
             data[hit] = np.where(sat[hit], np.maximum(data[hit], model), data[hit])
-    # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}; every basis is a sum of row ⊗ column
-    # products of them, so every weighted window sum is a product of 1-D sums or of
-    # weighted row vectors · data · weighted column vectors.
-    one = np.ones_like(ur)
-    fr = np.stack([gr, one, sr, dr, ur], axis=1)  # (n, 5, size)
-    fc = np.stack([gc, one, sc, dc, uc], axis=1)
-    frw = fr * wr[:, None, :]
-    fcw = np.swapaxes(fc * wc[:, None, :], 1, 2)  # (n, size, 5)
+    # Per-axis vectors f ∈ {G, 1, ∂G/∂σ, ∂G/∂u, u}, rows then columns (2n, 5, size); every
+    # basis is a sum of row ⊗ column products of them, so every weighted window sum is a
+    # product of 1-D sums or of weighted row vectors · data · weighted column vectors.
+    f = np.empty((2 * n, 5, size))  # (filled in place: np.stack costs more than the data)
+    f[:, 0], f[:, 1], f[:, 2], f[:, 3], f[:, 4] = g, 1.0, sg, dg, u
+    fw = f * wrc[:, None, :]
+    frw, fcw = fw[:n], np.swapaxes(fw[n:], 1, 2)  # (n, 5, size), (n, size, 5)
     q = frw @ data @ fcw  # (n, 5, 5)
-    if len(pair_i):
-        q -= _neighbour_sums(local[pair_i], pair_j, frw, fcw, win_r, win_c, st, n)
-    pr = frw @ np.swapaxes(fr, 1, 2)  # (n, 5, 5) weighted 1-D sums of products, rows
-    pc = np.swapaxes(fcw, 1, 2) @ np.swapaxes(fc, 1, 2)  # columns
+    if p:
+        q -= _neighbour_sums(i, j, frw, fcw, gjr, gjc, st, n)
+    pp = fw @ np.swapaxes(f, 1, 2)  # (2n, 5, 5) weighted 1-D sums of products: rows, columns
+    pr, pc = pp[:n], pp[n:]
     # The current model A·G⊗G + b0·1⊗1 + b_r·u⊗1 + b_c·1⊗u summed like the data: the
     # residual's sums, i.e. the exact gradient.
     q -= mass[:, None, None] * pr[:, :, 0, None] * pc[:, None, :, 0]
@@ -417,45 +436,37 @@ def _gauss_newton_step(
     return tuple(out)
 
 
-def _neighbour_profiles(
-    i: NDArray[np.intp],
-    j: NDArray[np.intp],
-    win_r: NDArray[np.float64],
-    win_c: NDArray[np.float64],
-    st: _FitState,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The 1-D row and column profiles (pairs, size) of the neighbour j's current model over the
-    window of the dot i, for each pair (a model is separable: the window's light is their outer
-    product times the neighbour's mass)."""
-    size = win_r.shape[1]
-    sj = st.s[j, None]
-    u0 = np.concatenate([win_r[i, :1] - st.cr[j, None], win_c[i, :1] - st.cc[j, None]])
-    g = window_gaussian(u0, size, np.concatenate([sj, sj]), derivatives=False)[0]
-    return g[: len(i)], g[len(i) :]
+def _run_starts(i: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Where each run of equal values of the sorted, non-empty ``i`` starts."""
+    new = np.empty(len(i), dtype=bool)
+    new[0] = True
+    np.not_equal(i[1:], i[:-1], out=new[1:])
+    return np.flatnonzero(new)
 
 
 def _neighbour_light(
     i: NDArray[np.intp],
     j: NDArray[np.intp],
     hit: NDArray[np.intp],
-    win_r: NDArray[np.float64],
-    win_c: NDArray[np.float64],
+    gjr: NDArray[np.float64],
+    gjc: NDArray[np.float64],
     st: _FitState,
+    n: int,
 ) -> NDArray[np.float64]:
     """(len(hit), size, size): the current models of the neighbours j (indices into ``st``)
-    rendered in the windows of the dots ``hit`` (indices into ``win_r``, ``win_c``, as the
-    pairs' i; pairs sorted by i)."""
-    size = win_r.shape[1]
+    rendered in the windows of those of the n dots i (pairs sorted by i) that are ``hit``,
+    from each pair's row and column profiles ``gjr``, ``gjc`` (pairs, size): a model is
+    separable, its light in a window the outer product of the two times its mass."""
+    size = gjr.shape[1]
     out = np.zeros((len(hit), size, size))
-    slot = np.full(len(win_r), -1, np.intp)
+    slot = np.full(n, -1, np.intp)
     slot[hit] = np.arange(len(hit))
     keep = slot[i] >= 0
     if not keep.any():
         return out
-    i, j = i[keep], j[keep]
-    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
+    i, j, gjr, gjc = i[keep], j[keep], gjr[keep], gjc[keep]
     light = st.mass[j, None, None] * gjr[:, :, None] * gjc[:, None, :]
-    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    starts = _run_starts(i)
     out[slot[i[starts]]] = np.add.reduceat(light, starts, axis=0)
     return out
 
@@ -465,21 +476,20 @@ def _neighbour_sums(
     j: NDArray[np.intp],
     frw: NDArray[np.float64],
     fcw: NDArray[np.float64],
-    win_r: NDArray[np.float64],
-    win_c: NDArray[np.float64],
+    gjr: NDArray[np.float64],
+    gjc: NDArray[np.float64],
     st: _FitState,
     n: int,
 ) -> NDArray[np.float64]:
     """(n, 5, 5): what the current models of the neighbours j (indices into ``st``) add to the
-    window sums of the dots i (indices into ``frw``, ``fcw``, ``win_r``, ``win_c``; pairs
-    sorted by i). A model is separable, so each pair's share is an outer product of two 1-D
-    overlaps."""
-    gjr, gjc = _neighbour_profiles(i, j, win_r, win_c, st)
+    window sums of the dots i (indices into ``frw``, ``fcw``; pairs sorted by i), from each
+    pair's row and column profiles ``gjr``, ``gjc`` (pairs, size): a model is separable, so
+    each pair's share is an outer product of two 1-D overlaps."""
     vr = (frw[i] @ gjr[:, :, None])[:, :, 0]  # (pairs, 5)
     vc = (gjc[:, None, :] @ fcw[i])[:, 0, :]
     contrib = (st.mass[j, None, None] * vr[:, :, None] * vc[:, None, :]).reshape(len(i), 25)
     out = np.zeros((n, 25))
-    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    starts = _run_starts(i)
     out[i[starts]] = np.add.reduceat(contrib, starts, axis=0)
     return out.reshape(n, 5, 5)
 
@@ -536,14 +546,16 @@ _PAIR_I1, _PAIR_I2 = (
     )
 )
 del _ii, _sep_i
-_PAIR_SEP = (_PAIR_I1 - _PAIR_I2) * BLEND_STEP
-_PAIR_OVERLAP = np.exp(-0.25 * _PAIR_SEP**2)
 _PAIR_INTERIOR = (
     (_lo < _PAIR_I1 - _PAIR_I2)
     & (_hi > _PAIR_I1 - _PAIR_I2)
     & (_PAIR_I2 > 0)
     & (len(_BLEND_T) - 1 > _PAIR_I1)
 )
+_PAIR_SEP = (_PAIR_I1 - _PAIR_I2) * BLEND_STEP
+_PAIR_OVERLAP = np.exp(-0.25 * _PAIR_SEP**2)
+_PAIR_SUM = _PAIR_I1 + _PAIR_I2
+_PAIR_T = np.column_stack([_BLEND_T[_PAIR_I1], _BLEND_T[_PAIR_I2]])
 del _lo, _hi
 
 
@@ -600,20 +612,22 @@ def blend_test(
     the log-likelihood ratio at the noise s_n (the sensor's ``noise_gray``, or the window's
     residual where that is larger: shot noise, speckle, halos), less the Bayesian information
     criterion's price of the two more parameters over the window's m pixels. The two spots'
-    positions are refined by a parabola through the best hypothesis and its neighbours.
+    positions are the best hypothesis's, on the grid (:data:`BLEND_STEP` s; the joint fit
+    that follows a split refines them).
     """
     n = len(r)
     half = window_half_px(sigma_px)
-    off = np.arange(-half, half + 1)
+    size = 2 * half + 1
+    off_r, off_c = _window_offsets(half)
     ir, ic = np.rint(r).astype(np.intp), np.rint(c).astype(np.intp)
-    pr = clip(ir[:, None] + np.repeat(off, len(off))[None, :], 0, image.shape[0] - 1)
-    pc = clip(ic[:, None] + np.tile(off, len(off))[None, :], 0, image.shape[1] - 1)
+    pr = clip(ir[:, None] + off_r, 0, image.shape[0] - 1)
+    pc = clip(ic[:, None] + off_c, 0, image.shape[1] - 1)
     y = image[pr, pc].astype(np.float64)
     wt = np.ones_like(y) if valid is None else valid[pr, pc].astype(np.float64)
     m = y.shape[1]
     scale = math.sqrt(sigma_px * sigma_px + 1.0 / 12.0)
     if neighbours is not None and len(neighbours[0]):
-        y -= _neighbours_in_windows(pr, pc, len(off), scale, neighbours)
+        y -= _neighbours_in_windows(pr, pc, size, scale, neighbours)
     er, ec = axis[:, 0:1], axis[:, 1:2]
     dr, dc = pr - r[:, None], pc - c[:, None]
     along = (dr * er + dc * ec) / scale
@@ -653,32 +667,22 @@ def blend_test(
     # two round spots at t1 > 0 > t2 on the line
     gs, gy, gg = light[:n, ks:], light[n:, ks:], square[:, ks:]
     mean_s, mean_y = (1.0 / s0)[:, None], (sy / s0)[:, None]
-    each = np.arange(n)[:, None]
     # each position's own terms, once (the hypotheses pair them)
     a_own = gg[:, ::2] - gs * gs * mean_s  # Σ w g_t² − (Σ w g_t)²/S0
     b_own = gy - gs * mean_y
 
-    def two_spots(
-        i1: NDArray[np.intp], i2: NDArray[np.intp], overlap: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """SSR and the two amplitudes of the hypotheses (positions i1 > i2 on _BLEND_T;
-        ``overlap`` exp(−(t1 − t2)²/4), the two spots' product's factor)."""
-
-        def take(a: NDArray[np.float64], i: NDArray[np.intp]) -> NDArray[np.float64]:
-            return a[:, i] if i.ndim == 1 else a[each, i]
-
-        a11, a22 = take(a_own, i1), take(a_own, i2)
-        a12 = overlap * take(gg, i1 + i2) - take(gs, i1) * take(gs, i2) * mean_s
-        b_1, b_2 = take(b_own, i1), take(b_own, i2)
-        det = a11 * a22 - a12 * a12
-        ok = det > 1e-9 * np.maximum(a11 * a22, 1e-300)
-        det = np.where(ok, det, 1.0)
-        amp1 = (a22 * b_1 - a12 * b_2) / det
-        amp2 = (a11 * b_2 - a12 * b_1) / det
-        ssr = base[:, None] - (amp1 * b_1 + amp2 * b_2)
-        return np.where(ok & (amp1 > 0) & (amp2 > 0), ssr, np.inf), amp1, amp2
-
-    ssr2_all, amp1, amp2 = two_spots(_PAIR_I1, _PAIR_I2, _PAIR_OVERLAP)
+    # every hypothesis's SSR and two amplitudes
+    a11, a22 = a_own[:, _PAIR_I1], a_own[:, _PAIR_I2]
+    a12 = _PAIR_OVERLAP * gg[:, _PAIR_SUM] - gs[:, _PAIR_I1] * gs[:, _PAIR_I2] * mean_s
+    b_1, b_2 = b_own[:, _PAIR_I1], b_own[:, _PAIR_I2]
+    det = a11 * a22 - a12 * a12
+    ok = det > 1e-9 * np.maximum(a11 * a22, 1e-300)
+    det = np.where(ok, det, 1.0)
+    amp1 = (a22 * b_1 - a12 * b_2) / det
+    amp2 = (a11 * b_2 - a12 * b_1) / det
+    ssr2_all = np.where(
+        ok & (amp1 > 0) & (amp2 > 0), base[:, None] - (amp1 * b_1 + amp2 * b_2), np.inf
+    )
     best = np.argmin(ssr2_all, axis=1)
     rows = np.arange(n)
     ssr2 = ssr2_all[rows, best]
@@ -686,30 +690,25 @@ def blend_test(
     with np.errstate(invalid="ignore"):
         evidence = (ssr1 - ssr2) / np.maximum(s2, 1e-12) - 2.0 * math.log(m)
     evidence = np.where(np.isfinite(evidence), evidence, -np.inf)
-    b1i, b2i = _PAIR_I1[best], _PAIR_I2[best]
     interior = _PAIR_INTERIOR[best] & np.isfinite(ssr2)
-    t1, t2 = _BLEND_T[b1i], _BLEND_T[b2i]
-    if np.any(interior & (evidence > 0)):
-        # parabolas through the best and its neighbours, moving one spot at a time (a
-        # neighbour off the grid or with the spots' order swapped is no hypothesis)
-        last = len(_BLEND_T) - 1
-        n1 = np.column_stack([np.maximum(b1i - 1, 0), np.minimum(b1i + 1, last), b2i, b2i])
-        n2 = np.column_stack([b1i, b1i, np.maximum(b2i - 1, 0), np.minimum(b2i + 1, last)])
-        near, _, _ = two_spots(n1, n2, np.exp(-0.25 * ((n1 - n2) * BLEND_STEP) ** 2))
-        near = np.where(n1 > n2, near, np.inf)
-        t1 = t1 + _vertex(near[:, 0], ssr2, near[:, 1]) * BLEND_STEP
-        t2 = t2 + _vertex(near[:, 2], ssr2, near[:, 3]) * BLEND_STEP
-    ax = axis[:, None, :]
-    centres = np.column_stack([r, c])[:, None, :] + (
-        scale * np.stack([t1, t2], axis=1)[:, :, None] * ax
-    )
+    t = _PAIR_T[best]  # (n, 2): t1, t2
+    centres = np.column_stack([r, c])[:, None, :] + scale * t[:, :, None] * axis[:, None, :]
     return BlendTest(
         evidence,
         centres,
         np.column_stack([amp1[rows, best], amp2[rows, best]]),
-        (t1 - t2) * scale / sigma_px,
+        (t[:, 0] - t[:, 1]) * scale / sigma_px,
         interior,
     )
+
+
+@functools.lru_cache(maxsize=16)
+def _window_offsets(half: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The row and column offsets (1, size²; row-major) of a square window of ±``half`` px."""
+    off = np.arange(-half, half + 1)
+    rows, cols = np.repeat(off, len(off))[None, :], np.tile(off, len(off))[None, :]
+    rows.flags.writeable = cols.flags.writeable = False  # (shared: read only)
+    return rows, cols
 
 
 def _neighbours_in_windows(
@@ -743,15 +742,3 @@ def _neighbours_in_windows(
     pad_r[ki, slot] = prof_r
     pad_c[ki, slot] = prof_c
     return np.matmul(np.swapaxes(pad_r, 1, 2), pad_c).reshape(n, size * size)
-
-
-def _vertex(
-    lo: NDArray[np.float64], mid: NDArray[np.float64], hi: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """The offset (steps, within ±½) of the vertex of the parabola through (−1, lo), (0, mid),
-    (1, hi); 0 where it is not a minimum (or a neighbour is no hypothesis)."""
-    with np.errstate(invalid="ignore"):
-        curv = lo - 2.0 * mid + hi
-        ok = np.isfinite(curv) & (curv > 0)
-        step = 0.5 * (lo - hi) / np.where(ok, curv, 1.0)
-    return np.where(ok, clip(step, -0.5, 0.5), 0.0)
