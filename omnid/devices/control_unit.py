@@ -259,6 +259,7 @@ class ControlUnitHealth(LinkHealth):
     malformed: int = 0
     seq_errors: int = 0
     late_bytes_discarded: int = 0
+    unsent_bytes_discarded: int = 0  # old frames the line had not carried (0 where uncounted)
     consecutive_missed: int = 0
     unit_faults: int = 0
     unit_rx_errors: int = 0
@@ -455,6 +456,7 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         """A final stop command (best effort: the unit's watchdog stops the motors anyway)."""
         with contextlib.suppress(DeviceError, TimeoutError):
             async with asyncio.timeout(0.1):
+                transport.reset_output()
                 await transport.write(codec.encode_command(self._next_frame()))
 
     def _on_stopped(self) -> None:
@@ -468,6 +470,9 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         # Half duplex: whatever is still in the input is a late (part of a) reply to an earlier
         # command. Drop it, so that its tail cannot be parsed as a CRC error against this command.
         h.late_bytes_discarded += t.reset_input()
+        # Nor may an older command that the line has not carried yet (adapter or unit not
+        # reading) go out after this one: only the frame computed now is queued.
+        h.unsent_bytes_discarded += t.reset_output()
         self._parser.reset()
         frame = self._next_frame()
         seq = frame.seq

@@ -11,6 +11,8 @@ tilt sensor) open one with :func:`open_transport` and use the asyncio methods::
     await t.write(b"...")
     data = await t.read_some(256, timeout_s=0.05)    # b"" when nothing arrived in time
     data = await t.read_exactly(8, timeout_s=0.05)   # DeviceTimeout when short
+    t.reset_input()                                  # drop what came and was not read
+    t.reset_output()                                 # drop what was written and not yet sent
     t.close()
 
 Every OS-level failure (port missing, unplugged adapter, EIO from a pty whose master closed) is
@@ -24,7 +26,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import fcntl
 import os
+import sys
+import termios
 from dataclasses import dataclass
 
 from omnid.config import Settings, setting
@@ -144,6 +149,16 @@ class Transport:
                 dropped += len(chunk)
         return dropped
 
+    def reset_output(self) -> int:
+        """Discard what was written and has not yet left (the OS's output queue).
+
+        A control frame the line did not carry must not be sent after a newer one. Returns how
+        many bytes were dropped where the OS can say (a serial port), else 0 (a pty; in-process
+        ends, which have no queue). Never blocks; a link that is gone is left for the next read
+        or write to report.
+        """
+        return 0
+
     def close(self) -> None:
         """Close the link; later reads and writes raise :class:`DeviceClosed`. Idempotent."""
         if not self._closed:
@@ -231,6 +246,15 @@ class FdTransport(Transport):
                     raise self._gone(exc, f"device disconnected ({exc.strerror})") from exc
                 raise DeviceError(f"{self.name}: write failed ({exc.strerror})") from exc
             view = view[n:]
+
+    def reset_output(self) -> int:
+        queued = 0
+        with contextlib.suppress(OSError, termios.error):
+            raw = fcntl.ioctl(self._fd, termios.TIOCOUTQ, b"\0\0\0\0")
+            queued = int.from_bytes(raw, sys.byteorder, signed=True)
+        with contextlib.suppress(OSError, termios.error):
+            termios.tcflush(self._fd, termios.TCOFLUSH)
+        return max(queued, 0)
 
     def _close_raw(self) -> None:
         close = getattr(self._owner, "close", None)

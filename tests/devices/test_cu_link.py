@@ -619,3 +619,79 @@ def test_a_restarted_master_counting_from_zero_again_is_not_a_replay():
     now[0] = 0.52
     assert send(2).left_applied_pm == 500
     assert send(0).left_applied_pm == 0  # a frame older than the stop is still a replay
+
+
+class AdapterWithTxQueue(LoopTransport):
+    """A pipe end behind a serial adapter's transmit queue: while the line is held (``held``:
+    flow control asserted, a USB adapter not scheduled), written bytes wait in ``queue``; when it
+    is released they go out in order. ``reset_output`` discards the queue, as TCOFLUSH does on a
+    real port. (On a pty nothing waits: the other side's buffer is the line.)"""
+
+    held = False
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.queue = bytearray()
+
+    async def _write_raw(self, data: bytes) -> None:
+        self.queue += data
+        if not self.held:
+            self.release()
+
+    def release(self) -> None:
+        self.held = False
+        data, self.queue = bytes(self.queue), bytearray()
+        self.peer.feed(data)
+
+    def reset_output(self) -> int:
+        dropped = len(self.queue)
+        self.queue.clear()
+        return dropped
+
+
+def test_frames_the_line_did_not_carry_are_never_sent_later():
+    """A frame the line has not carried is discarded before the next one is written, not queued
+    behind it. Without that, when the line moves again it delivers a backlog of old commands —
+    forward duties no live cycle computed just now — one after the other.
+
+    The line is held for 0.3 s (about 30 command periods) while the link sends a forward
+    command, then released; the unit may see at most the one frame written last.
+    """
+
+    async def main() -> tuple[int, int, ControlUnitHealth]:
+        adapter, unit_end = AdapterWithTxQueue("adapter"), LoopTransport("unit")
+        adapter.peer, unit_end.peer = unit_end, adapter
+        unit = ControlUnitEmulator()
+        parser = codec.FrameParser(accept=(codec.TYPE_COMMAND,))
+
+        async def serve() -> None:
+            while True:
+                data = await unit_end.read_some(256, 5.0)
+                for frame in parser.feed(data):
+                    await unit_end.write(unit.handle_bytes(codec.encode_command(frame)))
+
+        server = asyncio.create_task(serve())
+        link = ControlUnitLink(settings("adapter"), transport_factory=lambda: adapter)
+        await link.start()
+        cycle = asyncio.create_task(control_cycle(link))
+        try:
+            await wait_for(lambda: link.health.healthy)
+            link.set_command(WheelCommand(left_duty=0.5, right_duty=0.5, enable=True))
+            await wait_for(lambda: link.health.replies_ok >= 5)
+            adapter.held = True
+            sent_before = link.health.commands_sent
+            await asyncio.sleep(0.3)
+            sent_held = link.health.commands_sent - sent_before
+            backlog = codec.FrameParser(accept=(codec.TYPE_COMMAND,)).feed(adapter.queue)
+            adapter.release()
+            await wait_for(lambda: link.health.healthy)  # and the link recovers
+            return len(backlog), sent_held, link.health
+        finally:
+            cycle.cancel()
+            server.cancel()
+            await link.stop()
+
+    delivered, sent_held, h = asyncio.run(main())
+    assert sent_held >= 5  # the link kept sending while the line was held
+    assert delivered <= 1, f"{delivered} frames of {sent_held} held ones reached the unit"
+    assert h.unsent_bytes_discarded > 0
