@@ -99,6 +99,7 @@ def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
     from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
     from omnid.devices.emulators.gs311 import Gs311Emulator
     from omnid.sim.installation import calibrate_installed, installation_captures
+    from omnid.sim.render import LiveSensor
 
     class TimedUnit(ControlUnitEmulator):
         """Records when the first command with a non-zero duty arrives after ``arm()``."""
@@ -133,9 +134,15 @@ def bench_setup(a: argparse.Namespace) -> types.SimpleNamespace:
         f"perception:\n  calibration_path: {calib_path}\n  period_s: {a.period_s}\n"
     )
 
+    sensor = LiveSensor(seed=1)  # fresh read noise per frame: a still capture is no frozen camera
+
     def provider():
         on = cu.laser_on
-        return time.monotonic(), cap.base1 if on else cap.mask1, cap.base2 if on else cap.mask2
+        return (
+            time.monotonic(),
+            sensor(cap.base1 if on else cap.mask1),
+            sensor(cap.base2 if on else cap.mask2),
+        )
 
     return types.SimpleNamespace(
         tmp=tmp,

@@ -97,6 +97,7 @@ def real(seconds: float, fifo: bool = False) -> None:
     from omnid.sim.adapters import lit_share
     from omnid.sim.frame_server import FrameServer
     from omnid.sim.installation import calibrate_installed, installation_captures
+    from omnid.sim.render import LiveSensor
 
     tmp = Path(tempfile.mkdtemp(prefix="omnid-framerate-"))
     rig = StereoRig.nominal(floor_depth_mm=1100.0)
@@ -119,11 +120,15 @@ def real(seconds: float, fifo: bool = False) -> None:
     m1, b1 = cap.mask1.astype(np.float32), cap.base1.astype(np.float32)
     m2, b2 = cap.mask2.astype(np.float32), cap.base2.astype(np.float32)
 
+    sensor = LiveSensor(seed=2)  # fresh read noise per frame: a still capture is no frozen camera
+
     def provider(t_s: float) -> Any:
         lit = lit_share(cu.laser_switches, t_s - exposure_s / 2, t_s + exposure_s / 2, cu.laser_on)
-        img1 = np.rint(m1 + np.float32(lit) * (b1 - m1)).astype(np.uint8)
-        img2 = np.rint(m2 + np.float32(lit) * (b2 - m2)).astype(np.uint8)
-        return t_s, img1, img2
+        return (
+            t_s,
+            sensor(m1 + np.float32(lit) * (b1 - m1)),
+            sensor(m2 + np.float32(lit) * (b2 - m2)),
+        )
 
     prefix = REALTIME_PREFIX if fifo else ()
     # reference: the same perceive call, this process, one core

@@ -25,6 +25,7 @@ import yaml
 
 from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant, WireSpy
 from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
+from omnid.sim.render import LiveSensor
 
 FLOOR_MM = 1100.0
 NEUTRAL = (0.0, 0.0)
@@ -94,14 +95,16 @@ class DaemonBench:
 
             calib, cap = calibrated_floor(self.dir)
 
+            sensor = LiveSensor(seed=1)  # fresh read noise per frame: no frozen camera
+
             def provider() -> tuple[float, Any, Any]:
                 while self.frames_gone:
                     time.sleep(0.005)
                 on = self.cu.laser_on
                 return (
                     time.monotonic(),
-                    cap.base1 if on else cap.mask1,
-                    cap.base2 if on else cap.mask2,
+                    sensor(cap.base1 if on else cap.mask1),
+                    sensor(cap.base2 if on else cap.mask2),
                 )
 
             sock = self.dir / "frames.sock"

@@ -19,6 +19,14 @@ URL                                backend
 Timestamps: ``t_s`` is ``time.monotonic()`` when both frames had been grabbed (for ``sim+unix``
 the simulator's own ``t_s``, which is the clock the simulated daemon runs on).
 
+Frozen frames: a live sensor's noise makes every frame differ from the one before it, so a
+device source (V4L2, and the simulator's frame server, which stands in for one) that delivers a
+frame byte for byte equal to its previous one is frozen — a stuck driver re-delivering its last
+buffer, or nothing in view (the lens covered, the scene fully dark or saturated) — and the read
+raises :class:`~omnid.errors.DeviceError`: the daemon treats it as a camera failure (reopens the
+source; the speed cap applies meanwhile). Replayed files and in-process sources may repeat a
+still image and are not checked.
+
 ``flush()`` makes sure the next pair was captured after the call — the thesis takes the mask
 (laser off) and base (laser on) captures in sequence (4.1.4), so a base frame must not be a
 frame the driver had queued before the laser was switched on. For V4L2 the driver's queue
@@ -88,14 +96,18 @@ class StereoFrameSource:
     """Base class: open/closed state, deadlines; backends implement the raw read."""
 
     name = "camera"
+    #: a frame equal to the same camera's previous one is a fault (module docstring)
+    detects_frozen = False
 
     def __init__(self, settings: CameraSettings | None = None) -> None:
         self.settings = settings or CameraSettings()
         self._closed = False
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: asyncio.Future[Any] | None = None
+        self._previous: tuple[Image, Image] | None = None
         self.frames_read = 0
         self.timeouts = 0
+        self.frozen = 0  # reads refused as frozen
 
     # --- backends override one of these ---------------------------------------------------
     def _read_pair_blocking(self) -> FramePair:  # pragma: no cover - abstract
@@ -141,8 +153,23 @@ class StereoFrameSource:
             raise DeviceTimeout(
                 f"{self.name}: no frames within {self.settings.timeout_s:g} s"
             ) from exc
+        if self.detects_frozen:
+            self._refuse_frozen(img1, img2)
         self.frames_read += 1
         return img1, img2, t_s
+
+    def _refuse_frozen(self, img1: Image, img2: Image) -> None:
+        """DeviceError if either camera's frame equals its previous one, byte for byte."""
+        previous, self._previous = self._previous, (img1.copy(), img2.copy())
+        if previous is None:
+            return
+        for i, (before, now) in enumerate(zip(previous, (img1, img2), strict=True), 1):
+            if before.shape == now.shape and np.array_equal(before, now):
+                self.frozen += 1
+                raise DeviceError(
+                    f"{self.name}: camera {i} delivered the same frame twice, byte for byte: "
+                    "frozen (a stuck driver) or nothing in view (lens covered, dark or saturated)"
+                )
 
     async def flush(self) -> None:
         """Make the next :meth:`read_pair` return frames captured after this call."""
@@ -227,6 +254,7 @@ class VideoCaptureSource(StereoFrameSource):
         self.specs = specs
         self._loop = loop
         self._device = device
+        self.detects_frozen = device  # a video file may hold a still
         self._api = cv2.CAP_V4L2 if api is None else api
         self._caps = [self._open(spec) for spec in specs]
 
@@ -345,6 +373,7 @@ class SimUnixSource(StereoFrameSource):
     """Frames from the simulator's frame server over a Unix socket (interfaces.md wire format)."""
 
     name = "sim+unix"
+    detects_frozen = True  # the simulated device renders sensor noise into every frame
 
     def __init__(self, path: str, settings: CameraSettings | None = None) -> None:
         super().__init__(settings)

@@ -542,6 +542,20 @@ def sensor_image(
     return np.asarray(cv2.add(signal, noise, dtype=cv2.CV_8U), dtype=np.uint8)  # type: ignore[call-overload, unused-ignore]  # opencv 5.0 stubs only
 
 
+class LiveSensor:
+    """A still scene as a live sensor delivers it, frame after frame: each call adds fresh read
+    noise (``noise_sigma`` gray levels, rounded), so no two frames are equal — as with a real
+    camera, whose device sources refuse a repeated frame as frozen (``omnid.devices.camera``).
+    For frame servers that serve fixed captures (tests, benchmarks)."""
+
+    def __init__(self, seed: int = 0, noise_sigma: float = 0.7) -> None:
+        self._rng = np.random.default_rng(seed)
+        self._options = RenderOptions(noise_sigma=noise_sigma)
+
+    def __call__(self, scene: NDArray[np.generic]) -> NDArray[np.uint8]:
+        return sensor_image(np.asarray(scene, dtype=np.float32), self._options, self._rng)
+
+
 def _box_around(
     pos: NDArray[np.float64], reach_px: float, shape: tuple[int, int]
 ) -> tuple[int, int, int, int]:

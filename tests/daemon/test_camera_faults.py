@@ -33,7 +33,7 @@ class GarbledFrameServer:
         self._thread.start()
 
     def _serve(self) -> None:
-        img = np.zeros((8, 8), np.uint8)
+        rng = np.random.default_rng(0)  # sensor noise: a camera's frames are never identical
         while not self._stop.is_set():
             try:
                 conn, _ = self._sock.accept()
@@ -47,6 +47,7 @@ class GarbledFrameServer:
                             break
                     except TimeoutError:
                         continue
+                    img = rng.integers(0, 256, (8, 8), dtype=np.uint8)
                     frame = encode_frame(time.monotonic(), img, img)
                     if self.sent < self.bad:
                         frame = b"JUNK" + frame[4:]

@@ -32,6 +32,7 @@ from omnid.devices.emulators.control_unit import ControlUnitEmulator, MotorPlant
 from omnid.devices.emulators.gs311 import Gs311Emulator, HeadMotion
 from omnid.sim.frame_server import FrameServer
 from omnid.sim.installation import calibrate_installation_cli
+from omnid.sim.render import LiveSensor
 
 FLOOR_MM = 1100.0
 NEUTRAL = (1.5, -1.0)  # the rider's head at rest (roll, pitch), deg: calibrated at start
@@ -83,12 +84,14 @@ def test_daemon_on_real_links_with_perception(tmp_path: Path, floor_frames) -> N
     gs.open_pty(link_path=tilt_link)
     frames = str(tmp_path / "frames.sock")
 
+    sensor = LiveSensor(seed=1)
+
     def provider():
         on = cu.laser_on  # the relay as switched through the pty
         return (
             time.monotonic(),
-            cap.base1 if on else cap.mask1,
-            cap.base2 if on else cap.mask2,
+            sensor(cap.base1 if on else cap.mask1),
+            sensor(cap.base2 if on else cap.mask2),
         )
 
     cfg = tmp_path / "omnid.yaml"
@@ -246,17 +249,14 @@ def test_daemon_streams_clouds_at_the_frame_rate(tmp_path: Path, floor_frames) -
     planes = [a.astype(np.float32) for a in (cap.mask1, cap.base1, cap.mask2, cap.base2)]
 
     gone = threading.Event()  # set: the frame server answers nothing (the cameras are lost)
+    sensor = LiveSensor(seed=2)
 
     def provider(t_s: float):
         while gone.is_set():
             time.sleep(0.005)
         lit = np.float32(lit_share(cu.laser_switches, t_s - 0.003, t_s + 0.003, cu.laser_on))
         m1, b1, m2, b2 = planes
-        return (
-            t_s,
-            np.rint(m1 + lit * (b1 - m1)).astype(np.uint8),
-            np.rint(m2 + lit * (b2 - m2)).astype(np.uint8),
-        )
+        return (t_s, sensor(m1 + lit * (b1 - m1)), sensor(m2 + lit * (b2 - m2)))
 
     stats = tmp_path / "stats.json"
     cfg = tmp_path / "omnid.yaml"

@@ -115,7 +115,11 @@ async def _frame_server(path: str, rows: int, cols: int, hang_after: int | None 
                     await asyncio.sleep(10)
                 t_s = 100.0 + served
                 img1 = np.full((rows, cols), served, np.uint8)
-                img2 = np.arange(rows * cols, dtype=np.uint32).astype(np.uint8).reshape(rows, cols)
+                img2 = (
+                    (np.arange(rows * cols, dtype=np.uint32) + served)
+                    .astype(np.uint8)
+                    .reshape(rows, cols)
+                )
                 writer.write(SIM_HEADER.pack(b"OMNF", t_s, rows, cols))
                 writer.write(img1.tobytes() + img2.tobytes())
                 await writer.drain()
@@ -278,3 +282,48 @@ def test_a_stalled_grab_is_never_released_under_its_feet():
     took = asyncio.run(go())
     assert driver.released == [False], f"released during a grab: {driver.released}"
     assert took < 0.5  # close does not wait for the stalled grab
+
+
+def test_a_device_that_delivers_the_same_frame_twice_is_refused_as_frozen(tmp_path):
+    """A live sensor's noise makes every frame differ; a frame equal byte for byte to the one
+    before it is a stuck driver re-delivering its buffer (or a covered lens): a DeviceError
+    naming the camera, which the daemon treats as a camera failure. A video file or an image
+    replay may hold a still and is not refused."""
+    from omnid.sim.frame_server import FrameServer
+
+    rng = np.random.default_rng(4)
+    scene = rng.integers(0, 200, (24, 32)).astype(np.uint8)
+    frozen = {"cam": 0}
+
+    def provider():
+        noisy = (scene + rng.integers(0, 3, scene.shape)).astype(np.uint8)
+        return (time.monotonic(), noisy, scene if frozen["cam"] else noisy.copy())
+
+    sock = str(tmp_path / "frames.sock")
+
+    async def go():
+        src = open_camera(CameraSettings(url=f"sim+unix://{sock}", timeout_s=1.0))
+        for _ in range(5):  # live: every frame differs
+            await src.read_pair()
+        frozen["cam"] = 1
+        await src.read_pair()  # the first still frame differs from the live one before it
+        with pytest.raises(DeviceError, match="camera 2 delivered the same frame twice"):
+            await src.read_pair()
+        assert src.frozen == 1
+        await src.close()
+
+    with FrameServer(sock, provider, frame_period_s=None):
+        asyncio.run(go())
+
+    still = np.full((16, 16), 90, np.uint8)
+    for k in range(3):  # a replay of one still, looped: not a device
+        cv2.imwrite(str(tmp_path / f"{k:03d}_1.png"), still)
+        cv2.imwrite(str(tmp_path / f"{k:03d}_2.png"), still)
+
+    async def replay():
+        src = open_camera(f"replay://{tmp_path}")
+        for _ in range(3):
+            await src.read_pair()
+        await src.close()
+
+    asyncio.run(replay())
