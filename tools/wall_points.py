@@ -20,6 +20,7 @@ and the odometry's final position and heading error.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import math
 
@@ -48,9 +49,11 @@ def outline_distance_mm(xy: NDArray[np.float64], rects: NDArray[np.float64]) -> 
     return np.asarray(d.min(axis=1), dtype=np.float64)
 
 
-def run(name: str, kind: str, seed: int) -> dict[str, float]:
+def run(name: str, kind: str, seed: int, register_mm: float | None = None) -> dict[str, float]:
     trial = SCENARIOS[name](kind, seed)  # type: ignore[arg-type]
     core = make_core(trial.rider, dict(trial.config))
+    if register_mm is not None:  # the map's cloud registration (freespace.register_max_step_mm)
+        core.map.settings = dataclasses.replace(core.map.settings, register_max_step_mm=register_mm)
     settings = SimSettings(perception="pipeline", seed=trial.seed, record_seen=True,
                            stop_on_contact=False, worker_period_s=0.1,
                            perceive_time_s=0.01)  # fmt: skip
@@ -87,12 +90,21 @@ def run(name: str, kind: str, seed: int) -> dict[str, float]:
         "drift mm": math.hypot(px - ox, py - oy),
         "drift deg": math.degrees(abs(math.remainder(th - oth, 2 * math.pi))),
         "contacts": len(result.collisions),
+        "registered": core.map.registrations[0],
+        "refused": core.map.registrations[1],
+        "few pairs": core.map.registrations[2],
     }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument(
+        "--register-mm",
+        type=float,
+        default=None,
+        help="freespace.register_max_step_mm for the runs (default: as configured)",
+    )
     ap.add_argument("--kinds", nargs="+", default=["joystick", "tilt"])
     ap.add_argument("--trials", nargs="+", default=["along a wall at 150 mm", "doorway 850 mm"])
     args = ap.parse_args()
@@ -101,7 +113,7 @@ def main() -> None:
     for name in args.trials:
         for kind in args.kinds:
             for seed in range(args.seeds):
-                r = run(name, kind, seed)
+                r = run(name, kind, seed, args.register_mm)
                 for k, v in r.items():
                     total[k] = (
                         max(total.get(k, 0.0), v)
@@ -113,7 +125,8 @@ def main() -> None:
                       f"{r['seen>50']:3d}, worst {r['seen max']:5.0f} mm | map {r['map']:4d} pts, "
                       f">15 mm {r['map>15']:3d}, >50 mm {r['map>50']:3d}, worst "
                       f"{r['map max']:5.0f} mm | odometry off {r['drift mm']:4.0f} mm "
-                      f"{r['drift deg']:4.1f} deg", flush=True)  # fmt: skip
+                      f"{r['drift deg']:4.1f} deg | clouds registered {r['registered']}, "
+                      f"refused {r['refused']}, too few pairs {r['few pairs']}", flush=True)  # fmt: skip
     print(f"all: perceived {total['seen']:.0f} pts, >15 mm {total['seen>15']:.0f}, >50 mm "
           f"{total['seen>50']:.0f}, worst {total['seen max']:.0f} mm | map {total['map']:.0f} pts, "
           f">15 mm {total['map>15']:.0f}, >50 mm {total['map>50']:.0f}, worst "

@@ -118,6 +118,12 @@ class FreeSpaceSettings(Settings):
                            travel, beside the new capture's, and loses older ones
     carve_tolerance_mm     a kept obstacle point this close to a later ray, well before the
                            ray's dot, is dropped (0: no carving)
+    register_max_step_mm   each cloud's obstacle dots are aligned with the kept points to
+                           correct the odometry's pose (:meth:`FreeSpaceMap.update`); a
+                           correction larger than this (position, or heading × 1 m) is not
+                           trusted and not applied (0: no registration)
+    register_match_mm      a dot pairs with the nearest kept point within this distance
+    register_min_pairs     fewer pairs than this: no correction
     """
 
     grid: GridSettings = field(default_factory=GridSettings)
@@ -149,6 +155,9 @@ class FreeSpaceSettings(Settings):
     # below half the thinnest obstacle worth keeping (a 40 mm post: a ray that close would have
     # hit it), above the ray's own error (dot noise, the laser a centimetre off the rig origin)
     carve_tolerance_mm: float = setting(15.0, 0.0, 100.0)
+    register_max_step_mm: float = setting(0.0, 0.0, 500.0)
+    register_match_mm: float = setting(40.0, 1.0, 500.0)
+    register_min_pairs: int = setting(30, 3, 100000)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -191,6 +200,17 @@ def _to_frame(pose: tuple[float, float, float], xy: NDArray[np.float64]) -> NDAr
     return np.column_stack([x + c * xy[:, 0] - s * xy[:, 1], y + s * xy[:, 0] + c * xy[:, 1]])
 
 
+@dataclass(frozen=True)
+class Registration:
+    """What the last cloud's registration did: pairs found, the correction of the chair's
+    position (mm) and heading (rad), and whether it was applied."""
+
+    pairs: int
+    shift_mm: float
+    turn_rad: float
+    applied: bool
+
+
 class FreeSpaceMap:
     """A remembered FREE / OBSTACLE / DROPOFF / UNKNOWN map around the chair (robot frame)."""
 
@@ -222,6 +242,9 @@ class FreeSpaceMap:
         self._evidence = (-1, np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
         self._unknown: tuple[int, NDArray[np.float64]] = (-1, np.zeros((0, 2)))
         self._occupied: tuple[float, float, float] | None = None  # pose of the last occupy
+        self.registration = Registration(0, 0.0, 0.0, False)  # of the last cloud
+        #: clouds registered: [applied, refused (too large a correction), too few pairs]
+        self.registrations = [0, 0, 0]
 
     # -- motion -------------------------------------------------------------------------------
 
@@ -335,6 +358,9 @@ class FreeSpaceMap:
         self._grid = None
         self.version += 1
         st = self.settings
+        if len(cloud) and st.register_max_step_mm > 0:
+            self.registration = reg = self._register(cloud, rig_x_offset_mm)
+            self.registrations[0 if reg.applied else 1 if reg.pairs else 2] += 1
         if len(cloud):
             xy = _to_frame(self._pose, rig_to_robot(cloud.xyz, rig_x_offset_mm))
             # Finite and within 1000 km (NaN compares False): no overflow in any distance below.
@@ -411,6 +437,62 @@ class FreeSpaceMap:
             self._anchor.states[far] = CellState.UNKNOWN
         if forgot or len(cloud):
             self._prune_points()
+
+    def _register(self, cloud: PointCloud, rig_x_offset_mm: float) -> Registration:
+        """Correct the pose by aligning the cloud's obstacle dots with the kept points.
+
+        Odometry from wheel clocks drifts (15 holes a turn: a turn in place is uncertain by
+        degrees), and a point kept from an earlier capture is placed by the odometry of then:
+        seen from the drifted pose it lies off the wall it was on. The dots of this capture are
+        placed by perception alone, relative to the chair now. Iterated closest points, point to
+        line: each dot pairs with the nearest kept point within ``register_match_mm``, whose
+        neighbours give the surface's normal there; the small rigid motion about the chair's
+        position that best closes the pairs' gaps along their normals (least squares) is
+        applied to the pose; three rounds. What the pairs cannot fix — the motion along a
+        straight wall, where every position fits — is left as it was. A correction beyond
+        ``register_max_step_mm`` (position, or heading × 1 m) is taken for a wrong pairing,
+        not odometry: nothing is applied."""
+        st = self.settings
+        obstacle = cloud.classes == PointClass.OBSTACLE
+        ref = self._points[:, :2]
+        if int(obstacle.sum()) < st.register_min_pairs or len(ref) < st.register_min_pairs:
+            return Registration(0, 0.0, 0.0, False)
+        from scipy.spatial import cKDTree
+
+        robot = rig_to_robot(cloud.xyz[obstacle], rig_x_offset_mm)
+        tree = cKDTree(ref)
+        pose = self._pose
+        pairs = 0
+        for _ in range(3):
+            p = _to_frame(pose, robot)
+            d, k = tree.query(p, distance_upper_bound=st.register_match_mm)
+            ok = np.isfinite(d)
+            pairs = int(ok.sum())
+            if pairs < st.register_min_pairs:
+                return Registration(pairs, 0.0, 0.0, False)
+            p, q = p[ok], ref[k[ok]]
+            n = _normals(tree, ref, q)
+            x, y, th = pose
+            # gap along the normal after a motion (tx, ty, dθ) about (x, y), to first order:
+            # n·(p − q) + n·t + dθ·n·J(p − c), J(v) = (−v_y, v_x); dθ in mm at 1 m
+            lever = (n[:, 1] * (p[:, 0] - x) - n[:, 0] * (p[:, 1] - y)) / _TURN_REACH_MM
+            A = np.column_stack([n, lever])
+            r = np.sum(n * (p - q), axis=1)
+            # least squares in the directions the normals inform: a direction of the motion
+            # that fewer than a tenth of the pairs' normals face (along a straight wall, or
+            # the turn that a lone wall ahead cannot tell from a sideways shift) stays put
+            lam, V = np.linalg.eigh(A.T @ A)
+            inv = np.where(lam > 0.1 * pairs, 1.0 / np.maximum(lam, 1e-12), 0.0)
+            step = -(V @ (inv * (V.T @ (A.T @ r))))
+            dth = float(step[2]) / _TURN_REACH_MM
+            pose = (x + float(step[0]), y + float(step[1]), math.remainder(th + dth, 2 * math.pi))
+        x0, y0, th0 = self._pose
+        shift = math.hypot(pose[0] - x0, pose[1] - y0)
+        turn = abs(math.remainder(pose[2] - th0, 2.0 * math.pi))
+        if max(shift, turn * _TURN_REACH_MM) > st.register_max_step_mm:
+            return Registration(pairs, shift, turn, False)
+        self._pose = pose
+        return Registration(pairs, shift, turn, True)
 
     # -- the chair's trail --------------------------------------------------------------------
 
@@ -1110,6 +1192,23 @@ class FreeSpaceMap:
         if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
             raise ValueError("render_png: PNG encoding failed")
         Path(path).write_bytes(buf.tobytes())
+
+
+def _normals(
+    tree: object, ref: NDArray[np.float64], at: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Unit normals (M, 2) of the point set ``ref`` at its points ``at``: the direction of
+    least spread of each one's 12 nearest neighbours (``tree``: a cKDTree of ``ref``)."""
+    _, k = tree.query(at, k=min(12, len(ref)))  # type: ignore[attr-defined]
+    nb = ref[k]
+    nb = nb - nb.mean(axis=1, keepdims=True)
+    sxx = np.sum(nb[:, :, 0] ** 2, axis=1)
+    syy = np.sum(nb[:, :, 1] ** 2, axis=1)
+    sxy = np.sum(nb[:, :, 0] * nb[:, :, 1], axis=1)
+    # the major axis of the 2x2 scatter is at angle φ = ½·atan2(2 sxy, sxx − syy); the normal
+    # is perpendicular to it
+    phi = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    return np.column_stack([-np.sin(phi), np.cos(phi)])
 
 
 def _fixed_point(pix: NDArray[np.float64]) -> NDArray[np.int32]:

@@ -223,3 +223,45 @@ def test_a_cell_seen_again_keeps_its_recent_points_not_only_the_latest_captures(
     m.move(400.0, 0.0, 0.0)
     m.update(face(far_x - 400.0 - 2 * res), 0.0)
     assert abs(nearest_mm(m) - (far_x - 400.0 - 2 * res)) < 1e-6
+
+
+def _registered_pose(world: World, seed: int, odometry_error, register_mm: float = 30.0):
+    """The map's pose after two captures at the start, a 200 mm drive ahead that the odometry
+    gets wrong by ``odometry_error`` (dx, dy mm, dθ rad), and a capture from the true pose."""
+    m = FreeSpaceMap(FreeSpaceSettings(register_max_step_mm=register_mm))
+    for k in range(2):  # an obstacle is kept once two captures saw it
+        m.update(capture(world, 3 * seed + k), MOUNT.x_offset_mm)
+    ex, ey, eth = odometry_error
+    m.move(200.0 + ex, ey, eth)
+    m.update(capture(world, 3 * seed + 2, pose=(200.0, 0.0, 0.0)), MOUNT.x_offset_mm)
+    return m.pose_in_anchor, m.registration
+
+
+def test_registration_corrects_the_odometry_from_the_dots_over_seeds():
+    """A wall ahead and one beside fix the chair's position and heading: each capture's dots,
+    aligned with the points the map kept, undo the odometry's error (14 mm and 0.6° here) to
+    within 5 mm and 0.1° (the dots themselves scatter ±20 mm in depth at 1.8 m)."""
+    world = World(boxes=(Box(1800.0, 1900.0, -1500.0, 1500.0, 1000.0),
+                         Box(700.0, 1800.0, 450.0, 550.0, 1000.0)))  # fmt: skip
+    fixed = 0
+    for seed in range(10):
+        (x, y, th), reg = _registered_pose(world, seed, (-8.0, 12.0, math.radians(0.6)))
+        fixed += reg.applied and abs(x - 200.0) < 5.0 and abs(y) < 3.0 and abs(th) < 0.002
+    assert fixed >= 9, fixed
+    (x, y, th), _ = _registered_pose(world, 0, (-8.0, 12.0, math.radians(0.6)), register_mm=0.0)
+    assert (x, y) == (192.0, 12.0)  # without registration the odometry's pose stands
+
+
+def test_registration_leaves_what_the_dots_cannot_tell_and_refuses_large_jumps():
+    """A single wall across the way fixes the distance to it and the heading, not the position
+    along it: that stays as the odometry had it (20 mm off), while the distance is corrected
+    (10 mm) and the heading (0.5°) to within 0.3°. A correction larger than
+    ``register_max_step_mm`` is a wrong pairing: not applied."""
+    wall = World(boxes=(Box(1800.0, 1900.0, -1500.0, 1500.0, 1000.0),))
+    ok = 0
+    for seed in range(10):
+        (x, y, th), reg = _registered_pose(wall, seed, (10.0, 20.0, math.radians(0.5)))
+        ok += reg.applied and abs(x - 200.0) < 5.0 and abs(y - 20.0) < 1.0 and abs(th) < 0.005
+    assert ok >= 9, ok
+    (x, y, _), reg = _registered_pose(wall, 0, (25.0, 0.0, math.radians(2.0)))  # 2°: 35 mm
+    assert not reg.applied and reg.pairs > 0 and (x, y) == (225.0, 0.0)
