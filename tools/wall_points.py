@@ -28,11 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.core.types import PointClass
-from omnid.sim.rider import HeadScript, JoystickScript
-from omnid.sim.settings import SimSettings
-from omnid.sim.simulator import Simulator
-from omnid.sim.story import ReactiveRider
-from omnid.sim.suite import SCENARIOS, make_core
+from omnid.sim.suite import SCENARIOS, make_core, simulate
 
 
 def outline_distance_mm(xy: NDArray[np.float64], rects: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -54,16 +50,12 @@ def run(name: str, kind: str, seed: int, register_mm: float | None = None) -> di
     core = make_core(trial.rider, dict(trial.config))
     if register_mm is not None:  # the map's cloud registration (freespace.register_max_step_mm)
         core.map.settings = dataclasses.replace(core.map.settings, register_max_step_mm=register_mm)
-    settings = SimSettings(perception="pipeline", seed=trial.seed, record_seen=True,
-                           stop_on_contact=False, worker_period_s=0.1,
-                           perceive_time_s=0.01)  # fmt: skip
-    kw: dict[str, object] = {}
-    if isinstance(trial.rider_input, JoystickScript):
-        kw["joystick"] = trial.rider_input
-    elif isinstance(trial.rider_input, (HeadScript, ReactiveRider)):
-        kw["rider"] = trial.rider_input
-    sim = Simulator(trial.course, core, settings, chair_settings=trial.chair, **kw)  # type: ignore[arg-type]
-    result = sim.run(trial.duration_s)
+    sim, result, *_ = simulate(
+        trial,
+        core,
+        "pipeline",
+        {"record_seen": True, "worker_period_s": 0.1, "perceive_time_s": 0.01},
+    )
     w = trial.course.world
     rects = np.array(
         [(b.x_min_mm, b.x_max_mm, b.y_min_mm, b.y_max_mm) for b in w.boxes if b.height_mm >= 15.0]
@@ -90,9 +82,9 @@ def run(name: str, kind: str, seed: int, register_mm: float | None = None) -> di
         "drift mm": math.hypot(px - ox, py - oy),
         "drift deg": math.degrees(abs(math.remainder(th - oth, 2 * math.pi))),
         "contacts": len(result.collisions),
-        "registered": core.map.registrations[0],
-        "refused": core.map.registrations[1],
-        "few pairs": core.map.registrations[2],
+        "registered": core.map.registrations["applied"],
+        "refused": core.map.registrations["too large"],
+        "few pairs": core.map.registrations["too few pairs"],
     }
 
 

@@ -63,6 +63,7 @@ a time. omnid keeps a local map instead (SPEC §3), so an obstacle the chair has
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -202,13 +203,18 @@ def _to_frame(pose: tuple[float, float, float], xy: NDArray[np.float64]) -> NDAr
 
 @dataclass(frozen=True)
 class Registration:
-    """What the last cloud's registration did: pairs found, the correction of the chair's
-    position (mm) and heading (rad), and whether it was applied."""
+    """What a cloud's registration did: ``outcome`` ("applied"; "too large", the correction
+    refused; "too few pairs"), the pairs found and the correction of the chair's position (mm)
+    and heading (rad) it measured."""
 
-    pairs: int
-    shift_mm: float
-    turn_rad: float
-    applied: bool
+    outcome: str
+    pairs: int = 0
+    shift_mm: float = 0.0
+    turn_rad: float = 0.0
+
+    @property
+    def applied(self) -> bool:
+        return self.outcome == "applied"
 
 
 class FreeSpaceMap:
@@ -242,9 +248,9 @@ class FreeSpaceMap:
         self._evidence = (-1, np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
         self._unknown: tuple[int, NDArray[np.float64]] = (-1, np.zeros((0, 2)))
         self._occupied: tuple[float, float, float] | None = None  # pose of the last occupy
-        self.registration = Registration(0, 0.0, 0.0, False)  # of the last cloud
-        #: clouds registered: [applied, refused (too large a correction), too few pairs]
-        self.registrations = [0, 0, 0]
+        self.registration: Registration | None = None  # of the last cloud
+        #: clouds registered, by outcome (:class:`Registration`)
+        self.registrations: Counter[str] = Counter()
 
     # -- motion -------------------------------------------------------------------------------
 
@@ -359,8 +365,8 @@ class FreeSpaceMap:
         self.version += 1
         st = self.settings
         if len(cloud) and st.register_max_step_mm > 0:
-            self.registration = reg = self._register(cloud, rig_x_offset_mm)
-            self.registrations[0 if reg.applied else 1 if reg.pairs else 2] += 1
+            self.registration = self._register(cloud, rig_x_offset_mm)
+            self.registrations[self.registration.outcome] += 1
         if len(cloud):
             xy = _to_frame(self._pose, rig_to_robot(cloud.xyz, rig_x_offset_mm))
             # Finite and within 1000 km (NaN compares False): no overflow in any distance below.
@@ -456,7 +462,7 @@ class FreeSpaceMap:
         obstacle = cloud.classes == PointClass.OBSTACLE
         ref = self._points[:, :2]
         if int(obstacle.sum()) < st.register_min_pairs or len(ref) < st.register_min_pairs:
-            return Registration(0, 0.0, 0.0, False)
+            return Registration("too few pairs")
         from scipy.spatial import cKDTree
 
         robot = rig_to_robot(cloud.xyz[obstacle], rig_x_offset_mm)
@@ -469,7 +475,7 @@ class FreeSpaceMap:
             ok = np.isfinite(d)
             pairs = int(ok.sum())
             if pairs < st.register_min_pairs:
-                return Registration(pairs, 0.0, 0.0, False)
+                return Registration("too few pairs", pairs)
             p, q = p[ok], ref[k[ok]]
             n = _normals(tree, ref, q)
             x, y, th = pose
@@ -490,9 +496,9 @@ class FreeSpaceMap:
         shift = math.hypot(pose[0] - x0, pose[1] - y0)
         turn = abs(math.remainder(pose[2] - th0, 2.0 * math.pi))
         if max(shift, turn * _TURN_REACH_MM) > st.register_max_step_mm:
-            return Registration(pairs, shift, turn, False)
+            return Registration("too large", pairs, shift, turn)
         self._pose = pose
-        return Registration(pairs, shift, turn, True)
+        return Registration("applied", pairs, shift, turn)
 
     # -- the chair's trail --------------------------------------------------------------------
 

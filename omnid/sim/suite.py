@@ -794,16 +794,17 @@ def simulate(
     sim_changes: dict[str, Any] | None = None,
 ) -> tuple[Any, Any, NDArray[np.float64], NDArray[np.float64], float]:
     """Run ``trial`` on the simulator with the daemon's ``core``: (simulator, result, the core's
-    trace, the result's steps, wall s), the trace and the steps cut to the same length."""
+    trace, the result's steps, wall s), the trace and the steps cut to the same length.
+    ``sim_changes``: :class:`~omnid.sim.settings.SimSettings` fields, these defaults included."""
     import time
 
     from omnid.sim.rider import HeadScript
     from omnid.sim.settings import SimSettings
     from omnid.sim.simulator import Simulator
 
-    settings = SimSettings(perception=perception, seed=trial.seed, record_seen=False,  # type: ignore[arg-type]
-                           stop_on_contact=False, record_period_s=0.1,
-                           **(sim_changes or {}))  # fmt: skip
+    fields: dict[str, Any] = dict(record_seen=False, stop_on_contact=False, record_period_s=0.1)
+    fields.update(sim_changes or {})
+    settings = SimSettings(perception=perception, seed=trial.seed, **fields)  # type: ignore[arg-type]
     kw: dict[str, Any] = {}
     if isinstance(trial.rider_input, JoystickScript):
         kw["joystick"] = trial.rider_input
