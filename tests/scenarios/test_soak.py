@@ -1,5 +1,5 @@
 """Soak (issue 6): random riding in a cluttered room, the daemon core at its configured rates:
-5 simulated minutes in CI (the pytest option ``--soak-minutes``; the half hour, about a minute
+3 simulated minutes in CI (the pytest option ``--soak-minutes``; the half hour, about a minute
 of wall time: ``python -m pytest tests/scenarios/test_soak.py --soak-minutes 30``).
 
 The rider uses a joystick (the one input that can reverse) and does what a rider does: drives
@@ -191,7 +191,7 @@ def test_soak_random_riding_at_the_configured_rates(request):
     # Memory: the slopes after the warm-up (least squares over the samples). Objects: a leak of
     # one object every third control step is 1000 blocks a minute; the simulator's own records
     # and the map's working set add ~200 (measured in a fresh process). Resident memory: in a
-    # fresh process the heap still settles in the 5-minute run (0.3-0.4 MB a minute, with no
+    # fresh process the heap still settles in the short run (0.3-0.4 MB a minute, with no
     # object or array more: a warm pytest worker shows none of it), so the short run bounds
     # native leaks (cv2's buffers) at 1 MB a minute, 330 B a control step; the half hour at 0.05.
     mem = np.array([row for row in rss if row[0] >= warm_up_s])
