@@ -39,11 +39,6 @@ def pytest_configure(config: pytest.Config) -> None:
         "slow(seconds): a long run (still part of CI) and about how long it takes on a 2-core "
         "machine, s: the suite starts it first, on the least loaded worker",
     )
-    config.addinivalue_line(
-        "markers",
-        "realtime: the test keeps wall-clock deadlines (processes, ptys, sockets, sleeps): it "
-        "runs at the usual CPU priority, on the main thread",
-    )
 
 
 def _seconds(item: pytest.Item) -> float:
@@ -85,9 +80,9 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 BACKGROUND_NICE = 10  # CFS weight 110 against 1024: a real-time process gets ~90 % of a core
 
-#: The tests that keep wall-clock deadlines, by where they live (or ``@pytest.mark.realtime``):
-#: the daemon and the device links against emulators on ptys and sockets, the recorder and the
-#: bench, the hardware-in-the-loop run, the frame server, the newcomer's first run.
+#: The tests that keep wall-clock deadlines (processes, ptys, sockets, sleeps), by node id: the
+#: daemon and the device links against emulators, the recorder and the bench, the
+#: hardware-in-the-loop run, the frame server, the newcomer's first run.
 REALTIME_PATHS = (
     "tests/daemon/",
     "tests/devices/",
@@ -96,26 +91,21 @@ REALTIME_PATHS = (
     "tests/sim/test_frame_server.py",
     "tests/test_cli_newcomer.py",
 )
-_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _realtime(item: pytest.Item) -> bool:
-    where = os.path.relpath(str(item.path), _ROOT).replace(os.sep, "/")
-    return item.get_closest_marker("realtime") is not None or where.startswith(REALTIME_PATHS)
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_pyfunc_call(pyfuncitem: pytest.Function) -> bool | None:
     """Run a test that only computes (on the simulator's virtual clock, or none) in a thread of
-    lower CPU priority (Linux: a nice value is per thread; the thread, the processes it starts
-    and its priority end with the test).
+    lower CPU priority (Linux: a nice value is per thread, inherited by the processes it starts;
+    the thread and its priority end with the test).
 
     Whenever such a test shares the cores with a real-time one (the daemon as a process against
     emulators on ptys, with wall-clock deadlines), the real-time test's processes should get
     the CPU first, or the suite's own load makes them miss their deadlines — as it did (the
     HIL run out of time at 45 s, 4 stream masks where >10 are due) while all ran at one
     priority. The real-time tests (:data:`REALTIME_PATHS`) stay on the main thread."""
-    if _realtime(pyfuncitem) or inspect.iscoroutinefunction(pyfuncitem.obj):
+    realtime = pyfuncitem.nodeid.startswith(REALTIME_PATHS)
+    if realtime or inspect.iscoroutinefunction(pyfuncitem.obj):
         return None
     args = {name: pyfuncitem.funcargs[name] for name in pyfuncitem._fixtureinfo.argnames}
     raised: list[BaseException] = []

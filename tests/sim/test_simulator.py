@@ -293,7 +293,9 @@ def test_reactive_rider_moves_on_after_a_timeout_when_the_chair_never_does():
 @pytest.mark.slow(seconds=25)
 def test_demo_story_with_pipeline_perception():
     """The demo as `omnid demo` runs it: wide passage passed, narrow refused, stop before the
-    stairs, turn towards box 3 (outside the laser's field) refused, nothing touched."""
+    stairs, turn towards box 3 (outside the laser's field) refused, nothing touched; and the
+    reactive rider's own behaviour: each step ended by what the chair did, the head driving,
+    the joystick only backing away."""
     from omnid.sim.report import story_checks
 
     # Seeds 0 and 2 play the whole story; seed 1 still meets a phantom obstacle row in the
@@ -308,7 +310,7 @@ def test_demo_story_with_pipeline_perception():
     failed = [(what, ev) for what, ok, ev in story_checks(result) if not ok]
     assert failed == []
     # the reactive rider: every step ends by what the chair did (not by its timeout), in order;
-    # the run ends ~1 s after the story (settle + rest)
+    # the run ends 2 s after the last step (1 s settle + 1 s rest)
     assert [r.ended for r in result.story] == ["done"] * 6
     assert result.duration_s == pytest.approx(result.story[-1].t1_s + 1.0 + 1.0, abs=0.05)
     # the head drove (tilt reasons), the joystick only backed away
