@@ -134,6 +134,7 @@ class LoopStats:
     frames_read: int = 0  # frame pairs the camera delivered
     jobs_superseded: int = 0  # jobs dropped for newer ones before the worker took them
     masks_taken: int = 0
+    frames_ignored: int = 0  # stream: delivered while the laser's state was not known for sure
     perception_first_s: float | None = None  # monotonic time of the first and the last cloud
     perception_last_s: float | None = None
 
@@ -588,6 +589,7 @@ class Daemon:
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await t
             self.stats.masks_taken = cycle.masks_taken
+            self.stats.frames_ignored = cycle.ignored_frames
 
     def _arm_camera_timer(self) -> None:
         """Run a control cycle as soon as the awaited pair is ``camera_silence_s`` late: the
