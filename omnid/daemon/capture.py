@@ -502,9 +502,15 @@ class CaptureCycle:
             self._plan_mask(now, s)
         if self._off_at_s is not None and now + 1e-9 >= self._off_at_s and self.laser_on:
             self._off_at_s = None
+            # A poll later than the planned frame allows (the window between the exposure
+            # before it and the latest request is ~3 ms at 30 frames/s) switches off anyway:
+            # the first frame the light can still leave wholly dark becomes the mask, the one
+            # it spoils is not used. Planning the next mask instead took none at all from a
+            # loop that is always a few ms late.
             m = self._mask_k
-            if self._exposure(self._frame_t(m))[0] < now + s.laser_latency_s:
-                return  # too late for this mask (a late poll): plan the next one
+            while self._exposure(self._frame_t(m))[0] < now + s.laser_latency_s:
+                m += 1
+            self._mask_k, self._mask_phase = m, m % s.mask_every_frames
             self._request(False, now)
             end = self._exposure(self._frame_t(m))[1]
             self._on_at_s = max(end, now + s.laser_min_switch_s)

@@ -170,9 +170,13 @@ class _Bench:
         ts = np.linspace(t0, t1, 41)
         return float(np.mean([self.light(t) for t in ts]))
 
-    def run(self, seconds: float) -> None:
+    def run(self, seconds: float, late_s: float = 0.0) -> None:
+        """Poll every 1 ms tick; with ``late_s`` only when a reply or frame came or the
+        cycle's :attr:`~CaptureCycle.next_poll_s` is due, and then ``late_s`` late (an event
+        loop on a busy computer)."""
         c = self.cycle
         k = 0
+        due = 0.0
         for i in range(int(seconds * 1000) + 1):
             now = i / 1000
             if self.reports and i % 20 == 0:
@@ -184,6 +188,7 @@ class _Bench:
                     left_clocks = right_clocks = clocks
 
                 c.on_status(St)
+                due = min(due, now)
             while self.phase + k / self.fps + self.readout_s <= now:
                 t = self.phase + k / self.fps
                 k += 1
@@ -191,6 +196,10 @@ class _Bench:
                     continue
                 half = self.exposure_s / 2
                 c.on_frame(Frame(t, None, self.lit(t - half, t + half)))
+                due = min(due, now)
+            if late_s > 0 and now + 1e-9 < min(due, c.next_poll_s) + late_s:
+                continue
+            due = float("inf")
             before = c.laser_on
             for out in c.poll(now):
                 (self.jobs if isinstance(out, CaptureJob) else self.failures).append(out)
@@ -218,6 +227,21 @@ def test_stream_gives_two_clouds_in_three_frames_and_never_mixes_laser_states(se
     for j in jobs:
         before, after = (m.t_s for m in j.masks)
         assert before < j.t_s < after and after - before < 3.5 / 30
+
+
+@pytest.mark.parametrize("late_ms", [3, 6, 10])
+def test_a_loop_that_polls_late_still_takes_masks_and_never_mixes_laser_states(late_ms):
+    """The laser-off request for a mask has a ~3 ms window at 30 frames/s (after the
+    exposure before it, 18 ms of latency before the mask's). A loop always later than that
+    spoils the frame after the window instead: a job for every 3 frames or more, never none
+    (it took none at all, silently, before), every base wholly lit, every mask wholly dark."""
+    for seed in range(4):
+        b = _Bench(_stream(), relay_s=0.012, seed=seed)
+        b.run(4.0, late_s=late_ms / 1000)
+        jobs = [j for j in b.jobs if j.t_s > 1.0]
+        assert b.failures == [] and len(jobs) / 3.0 >= 7.0, (seed, len(jobs))
+        assert all(j.base.source == 1.0 for j in jobs)
+        assert all(m.source == 0.0 for j in jobs for m in j.masks)
 
 
 def test_a_laser_too_slow_to_switch_between_frames_costs_the_frames_around_the_mask():
