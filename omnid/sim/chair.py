@@ -196,18 +196,28 @@ def integrate_arc(
     )
 
 
-def _overlaps_aabb(corners: NDArray[np.float64], axis_u: NDArray[np.float64], rect: _Rect) -> bool:
-    """Separating-axis test of an oriented rectangle (4 corners, unit long axis) and an AABB."""
+def _overlaps_aabb(
+    corners: Sequence[Sequence[float]], axis_u: Sequence[float], rect: _Rect
+) -> bool:
+    """Separating-axis test of an oriented rectangle (4 corners, unit long axis) and an AABB.
+    On plain floats: with 4 corners numpy's per-call overhead is the whole cost, and a
+    blocked chair runs this 13 times a step (its bisection)."""
     xmin, xmax = float(rect.x_min_mm), float(rect.x_max_mm)
     ymin, ymax = float(rect.y_min_mm), float(rect.y_max_mm)
-    if corners[:, 0].max() <= xmin or corners[:, 0].min() >= xmax:
+    xs = [float(c[0]) for c in corners]
+    ys = [float(c[1]) for c in corners]
+    if max(xs) <= xmin or min(xs) >= xmax or max(ys) <= ymin or min(ys) >= ymax:
         return False
-    if corners[:, 1].max() <= ymin or corners[:, 1].min() >= ymax:
-        return False
-    box = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
-    for axis in (axis_u, np.array([-axis_u[1], axis_u[0]])):
-        a, b = corners @ axis, box @ axis
-        if a.max() <= b.min() or a.min() >= b.max():
+    ux, uy = float(axis_u[0]), float(axis_u[1])
+    for ax, ay in ((ux, uy), (-uy, ux)):
+        a = [x * ax + y * ay for x, y in zip(xs, ys, strict=True)]
+        b = [
+            xmin * ax + ymin * ay,
+            xmax * ax + ymin * ay,
+            xmax * ax + ymax * ay,
+            xmin * ax + ymax * ay,
+        ]
+        if max(a) <= min(b) or min(a) >= max(b):
             return False
     return True
 
@@ -439,7 +449,15 @@ class Chair:
         s = self.settings
         w = s.footprint_width_mm / 2.0
         f, r = s.footprint_front_mm, -s.footprint_rear_mm
-        return self.to_world(np.array([[f, -w], [f, w], [r, w], [r, -w]], dtype=np.float64))
+        x, y, c, sn = self.x_mm, self.y_mm, math.cos(self.theta_rad), math.sin(self.theta_rad)
+        # as to_world, on plain floats (4 points: numpy's overhead would be the whole cost)
+        return np.array(
+            [
+                [x + c * u - sn * v, y + sn * u + c * v]
+                for u, v in ((f, -w), (f, w), (r, w), (r, -w))
+            ],
+            dtype=np.float64,
+        )
 
     def support_points(self) -> dict[str, NDArray[np.float64]]:
         """World positions (2,) of the points that must stay on the floor, by name."""
@@ -493,18 +511,15 @@ class Chair:
         """Collisions of the footprint with ``corners`` (4, 2) with the world's tall boxes."""
         s = self.settings
         out: list[Contact] = []
-        axis = np.array([math.cos(self.theta_rad), math.sin(self.theta_rad)])
-        rects = self._rects_of(world)
-        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        axis = (math.cos(self.theta_rad), math.sin(self.theta_rad))
+        pts = corners.tolist()
+        xs, ys = [p[0] for p in pts], [p[1] for p in pts]
+        lo_x, hi_x, lo_y, hi_y = min(xs), max(xs), min(ys), max(ys)
         # Only boxes whose rectangle meets the footprint's bounding box can overlap it.
-        near = np.flatnonzero(
-            (rects[:, 0] < hi[0])
-            & (rects[:, 1] > lo[0])
-            & (rects[:, 2] < hi[1])
-            & (rects[:, 3] > lo[1])
-        )
-        for i in near.tolist():
+        for i, (x0, x1, y0, y1) in enumerate(self._rects_of(world).tolist()):
+            if not (x0 < hi_x and x1 > lo_x and y0 < hi_y and y1 > lo_y):
+                continue
             box = world.boxes[i]
-            if float(box.height_mm) >= s.collision_height_mm and _overlaps_aabb(corners, axis, box):
+            if float(box.height_mm) >= s.collision_height_mm and _overlaps_aabb(pts, axis, box):
                 out.append(Contact("collision", i, "footprint"))
         return out
