@@ -349,7 +349,13 @@ class ControlCore:
             cloud = transform_cloud(cloud, *motion, offset)
             sx, sy, sz = (float(v) for v in transform_rig_xyz([0.0, 0.0, 0.0], *motion, offset)[0])
             source = (sx, sy, sz)
-        self.map.update(cloud, offset, capture_time_s, source_mm=source)
+        try:
+            self.map.update(cloud, offset, capture_time_s, source_mm=source)
+        except Exception:
+            # a map half updated is not known to be right: no forward motion until a cloud
+            # enters cleanly (the freshness rule, as with no perception yet)
+            self.perception_time_s = None
+            raise
         if len(cloud) == 0:
             return  # no dots: no evidence that the way is clear, the map's age keeps growing
         if self.perception_time_s is None or capture_time_s > self.perception_time_s:

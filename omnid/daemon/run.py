@@ -64,6 +64,7 @@ import os
 import signal
 import time
 from collections import deque
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -164,6 +165,37 @@ def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
     if t_req_s - 0.2 <= t_cam_s <= t_got_s + 0.01:
         return t_cam_s
     return 0.5 * (t_req_s + t_got_s)
+
+
+async def run_supervised(
+    name: str,
+    make: Callable[[], Awaitable[None]],
+    stopping: Callable[[], bool],
+    on_failure: Callable[[str, BaseException], None],
+    backoff_s: float = 0.5,
+    max_backoff_s: float = 5.0,
+) -> None:
+    """Run the helper coroutine ``make()`` until ``stopping()``: one that raises (a bug) or
+    returns while the daemon runs is reported (``on_failure(name, exc)``: logged, counted) and
+    started again after ``backoff_s``, doubling up to ``max_backoff_s`` while it keeps failing
+    within a second. Without this a dead camera reader or perceiver left perception stale until
+    a restart (safe: no forward motion, but silent). Cancelling this cancels the helper."""
+    wait_s = backoff_s
+    while not stopping():
+        started = time.monotonic()
+        try:
+            await make()
+            if stopping():
+                return
+            exc: BaseException = RuntimeError("returned while the daemon runs")
+        except Exception as e:  # the helper's bug must not end perception for good
+            exc = e
+        log.error("%s task failed (%r): restarting it in %.1f s", name, exc, wait_s)
+        log.debug("%s task exception", name, exc_info=exc)
+        on_failure(name, exc)
+        wait_s = backoff_s if time.monotonic() - started > 1.0 else wait_s
+        await asyncio.sleep(wait_s)
+        wait_s = min(2.0 * wait_s, max_backoff_s)
 
 
 def _close_when_open(fut: asyncio.Future[Any]) -> None:
@@ -553,10 +585,20 @@ class Daemon:
         cycle = self.capture_cycle = CaptureCycle(
             CaptureSettings.from_config(cfg), start_s=time.monotonic()
         )
+        stopping = self._stop.is_set
         helpers = [
-            asyncio.create_task(self._frame_reader(cycle), name="frames"),
-            asyncio.create_task(self._perceiver(), name="perceive"),
-        ]
+            asyncio.create_task(
+                run_supervised(
+                    "camera_reader", lambda: self._frame_reader(cycle), stopping,
+                    self._perception_error,
+                ),
+                name="frames",
+            ),
+            asyncio.create_task(
+                run_supervised("perceiver", self._perceiver, stopping, self._perception_error),
+                name="perceive",
+            ),
+        ]  # fmt: skip
         try:
             while not self._stop.is_set():
                 self._capture_wake.clear()
@@ -726,7 +768,12 @@ class Daemon:
             if self._next_grid_s - time.monotonic() < ENTER_MARGIN_S:
                 self._cycle_done.clear()
                 await self._wait_any([self._cycle_done], 2 * self.config.control.period_s)
-            self.core.on_perception(cloud, job.t_s)
+            try:
+                self.core.on_perception(cloud, job.t_s)
+            except Exception as exc:  # a bug in the map update: this cloud is lost, not the task
+                self._perception_error("map", exc)
+                log.debug("map update exception", exc_info=True)
+                continue
             now = time.monotonic()
             st = self.stats
             st.note(st.perception_s, t_done - w0)
