@@ -91,6 +91,9 @@ REALTIME_PATHS = (
     "tests/sim/test_frame_server.py",
     "tests/test_cli_newcomer.py",
 )
+#: Under those paths, but pure computation (no clock, no pty): the codecs' fuzz tests, 10–15 s
+#: of CPU that would otherwise compete with the real-time tests at their priority.
+COMPUTE_ONLY_PATHS = ("tests/devices/test_cu_codec.py", "tests/devices/test_tilt_codec.py")
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -104,7 +107,8 @@ def pytest_pyfunc_call(pyfuncitem: pytest.Function) -> bool | None:
     the CPU first, or the suite's own load makes them miss their deadlines — as it did (the
     HIL run out of time at 45 s, 4 stream masks where >10 are due) while all ran at one
     priority. The real-time tests (:data:`REALTIME_PATHS`) stay on the main thread."""
-    realtime = pyfuncitem.nodeid.startswith(REALTIME_PATHS)
+    nodeid = pyfuncitem.nodeid
+    realtime = nodeid.startswith(REALTIME_PATHS) and not nodeid.startswith(COMPUTE_ONLY_PATHS)
     if realtime or inspect.iscoroutinefunction(pyfuncitem.obj):
         return None
     args = {name: pyfuncitem.funcargs[name] for name in pyfuncitem._fixtureinfo.argnames}
