@@ -75,6 +75,7 @@ from omnid.daemon.capture import CaptureCycle, CaptureFailure, CaptureSettings, 
 from omnid.daemon.config import ConfigHolder, OmnidConfig
 from omnid.daemon.core import ControlCore
 from omnid.daemon.service import Notifier
+from omnid.devices.camera import MAX_BUFFER_AGE_S
 from omnid.devices.control_unit import ControlUnitLink
 from omnid.logs import LogThrottle
 
@@ -158,11 +159,13 @@ class LoopStats:
 def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
     """Capture time of a frame pair on this process's monotonic clock.
 
-    V4L2 sources stamp pairs with ``time.monotonic()`` at the grab (inside the read); the
+    V4L2 sources stamp pairs with the drivers' monotonic buffer timestamps, or
+    ``time.monotonic()`` at the grab (inside the read: :func:`omnid.devices.camera.pair_time`); the
     simulator's frame server stamps its own virtual clock, which is not ours. A stamp outside
-    the read's own window is therefore replaced by the window's midpoint.
+    the read's own window (or up to a driver queue's ``MAX_BUFFER_AGE_S`` before it) is
+    therefore replaced by the window's midpoint.
     """
-    if t_req_s - 0.2 <= t_cam_s <= t_got_s + 0.01:
+    if t_req_s - MAX_BUFFER_AGE_S <= t_cam_s <= t_got_s + 0.01:
         return t_cam_s
     return 0.5 * (t_req_s + t_got_s)
 

@@ -16,8 +16,13 @@ URL                                backend
 ``sim:``                           an in-process callable (:func:`open_camera` ``frame_fn=``)
 =================================  ==========================================================
 
-Timestamps: ``t_s`` is ``time.monotonic()`` when both frames had been grabbed (for ``sim+unix``
-the simulator's own ``t_s``, which is the clock the simulated daemon runs on).
+Timestamps: ``t_s`` is the capture time on the monotonic clock. For V4L2 it is the drivers'
+buffer timestamps (``CAP_PROP_POS_MSEC``: ``CLOCK_MONOTONIC`` in current drivers, taken when
+the frame was captured) averaged over the two cameras, where both are plausible (inside the
+read's own window, or up to a second before it: the driver's queue); otherwise — a driver with
+another clock, or none — ``time.monotonic()`` when both frames had been grabbed, which is late
+by the transfer (:func:`pair_time`). For ``sim+unix`` the simulator's own ``t_s``, which is the
+clock the simulated daemon runs on.
 
 Frozen frames: a live sensor's noise makes every frame differ from the one before it, so a
 device source (V4L2, and the simulator's frame server, which stands in for one) that delivers a
@@ -39,6 +44,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import math
 import struct
 import time
 from collections.abc import Callable
@@ -78,8 +84,9 @@ class CameraSettings(Settings):
     grayscale: bool = True
     # the longest exposure of a frame, s (the capture cycle keeps laser switches out of it)
     exposure_s: float = setting(0.008, 0.0001, 0.5)
-    # the middle of a frame's exposure is this long before its timestamp (a V4L2 read returns
-    # after the readout), s; subtracted from every timestamp
+    # the middle of a frame's exposure is this long before its timestamp (a V4L2 driver stamps
+    # its buffer at the end of the frame, or without a usable stamp the read returns after
+    # the readout and transfer), s; subtracted from every timestamp
     frame_latency_s: float = setting(0.0, 0.0, 1.0)
 
 
@@ -230,6 +237,22 @@ class StereoFrameSource:
         await self.close()
 
 
+#: How long before a read a driver's buffer may have been captured (its queue of frames), s.
+MAX_BUFFER_AGE_S = 1.0
+
+
+def pair_time(stamps_ms: list[float], t_before_s: float, t_grabbed_s: float) -> float:
+    """Capture time (monotonic s) of a frame pair from its buffers' timestamps ``stamps_ms``
+    (``CAP_PROP_POS_MSEC``), read between ``t_before_s`` and ``t_grabbed_s``: their mean when
+    every one lies between ``MAX_BUFFER_AGE_S`` before the read and its end (a monotonic
+    stamp), else ``t_grabbed_s`` (0 before the first frame, a wall-clock or device clock)."""
+    t = [float(ms) / 1000.0 for ms in stamps_ms]
+    lo = t_before_s - MAX_BUFFER_AGE_S
+    if t and all(math.isfinite(x) and lo <= x <= t_grabbed_s for x in t):
+        return sum(t) / len(t)
+    return t_grabbed_s
+
+
 class VideoCaptureSource(StereoFrameSource):
     """Two ``cv2.VideoCapture`` streams, grabbed then retrieved together in a worker thread.
 
@@ -295,9 +318,13 @@ class VideoCaptureSource(StereoFrameSource):
 
     def _read_pair_blocking(self) -> FramePair:
         # grab both first, then decode, so the two exposures are as close in time as possible
+        t_before = time.monotonic()
         self._grab(0)
         self._grab(1)
         t_s = time.monotonic()
+        if self._device:  # a file's "timestamp" is its position in the video
+            pos = self._cv2.CAP_PROP_POS_MSEC
+            t_s = pair_time([cap.get(pos) for cap in self._caps], t_before, t_s)
         imgs = []
         for i, cap in enumerate(self._caps):
             ok, img = cap.retrieve()

@@ -327,3 +327,25 @@ def test_a_device_that_delivers_the_same_frame_twice_is_refused_as_frozen(tmp_pa
         await src.close()
 
     asyncio.run(replay())
+
+
+def test_pair_time_trusts_the_drivers_monotonic_stamps_and_nothing_else():
+    """The V4L2 buffers' timestamps, when both are monotonic times from inside the read or the
+    driver's queue before it, give the pair's time (their mean); anything else — 0 before the
+    first frame, a wall-clock stamp, one camera's stamp after the read, NaN — falls back to the
+    time the grabs ended."""
+    from omnid.devices.camera import MAX_BUFFER_AGE_S, pair_time
+
+    before, grabbed = 500.0, 500.04
+    assert pair_time([499_990.0, 499_994.0], before, grabbed) == pytest.approx(499.992)
+    old = (before - MAX_BUFFER_AGE_S + 0.01) * 1000.0  # queued, but within the queue's age
+    assert pair_time([old, old], before, grabbed) == pytest.approx(old / 1000.0)
+    for stamps in (
+        [0.0, 0.0],
+        [1.764e12, 1.764e12],  # the wall clock, ms since 1970
+        [499_990.0, 500_100.0],  # after the read ended
+        [(before - MAX_BUFFER_AGE_S - 0.01) * 1000.0, 499_990.0],  # older than any queue
+        [float("nan"), 499_990.0],
+        [],
+    ):
+        assert pair_time(stamps, before, grabbed) == grabbed, stamps
