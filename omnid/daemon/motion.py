@@ -22,6 +22,7 @@ Pipeline of one control cycle::
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -261,10 +262,19 @@ class Odometry:
 
     def wheel_speeds(self) -> tuple[float, float]:
         """Clock-based (left, right) wheel speeds, mm/s (:func:`window_speed`)."""
-        if len(self._hist) < 2:
+        hist = self._hist
+        if len(hist) < 2:
             return 0.0, 0.0
-        h = np.asarray(self._hist, dtype=np.float64)
         w, m = self.settings.speed_window_s, self.settings.mm_per_clock
+        # only the window and the sample before it (what window_speed reads): not the whole
+        # history's 256 samples turned into an array at every control cycle
+        since = hist[-1][0] - float(w)
+        start = 0
+        for k in range(len(hist) - 1, -1, -1):
+            if hist[k][0] < since:
+                start = k
+                break
+        h = np.asarray(list(itertools.islice(hist, start, None)), dtype=np.float64)
         return window_speed(h[:, 0], h[:, 1], w, m), window_speed(h[:, 0], h[:, 2], w, m)
 
 
