@@ -43,6 +43,7 @@ def test_forward_at_a_wall_stops_with_the_promised_margin_and_never_touches_it()
     assert result.min_clearance_mm >= margin
     assert result.min_clearance_mm < margin + core.config.safety.slow_distance_mm  # type: ignore[attr-defined]
     assert result.max_speed_between(24.0, 25.0) < 1.0
+    assert result.distance_mm > 1500.0  # it drove up to the wall (its front starts 2150 mm from it)
     assert any("obstacle_stop" in r for _, r in result.refusals)
     assert result.timings["tilt_bytes_link"] == 1.0 and result.timings["bytes_link"] == 1.0
     assert result.timings["perception_cycles"] >= 40

@@ -232,23 +232,6 @@ def _core():
     return make_core()
 
 
-@pytest.mark.slow(seconds=5)
-def test_closed_loop_rider_drives_at_a_wall_and_the_daemon_stops_before_it():
-    from omnid.sim.rider import head_script
-
-    core = _core()
-    course = empty_room(4000.0)  # front wall face at x = 3000 mm
-    rider = head_script([("neutral", 0.5), ("forward", 30.0)])
-    result = Simulator(course, core, rider=rider).run(36.0)
-    assert result.contacts == []
-    x_front = result.trajectory[-1, 1] + ChairSettings().footprint_front_mm
-    assert 2400.0 < x_front < 3000.0  # it drove up to the wall and stopped short of it
-    assert result.distance_mm > 1500.0
-    assert abs(result.trajectory[-1, 1] - result.trajectory[-20, 1]) < 1.0  # stands still (1 s)
-    assert any("obstacle_stop" in r for _, r in result.refusals)
-    assert result.timings["bytes_link"] == 1.0
-
-
 def _story_run(
     perception: str, seed: int = 0, duration_s: float = 80.0, worker_period_s: float = 0.0
 ):
