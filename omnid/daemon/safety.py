@@ -118,6 +118,24 @@ class Reason(Enum):
     FAULT = "fault"
 
 
+#: What each limit means to whoever reads the journal (a caregiver, the installer), logged
+#: after the reason's code.
+REASON_TEXT = {
+    Reason.OBSTACLE_STOP: "an obstacle in the way",
+    Reason.DROPOFF_STOP: "a step or drop-off in the way",
+    Reason.SLOW_ZONE: "an obstacle or drop-off near the way",
+    Reason.APPROACH: "closing in on what stops the chair",
+    Reason.ESCAPE: "moving out of the stop zone, slowly",
+    Reason.UNKNOWN_AHEAD: "much of the way not seen yet",
+    Reason.UNKNOWN_STOP: (
+        "the chair would move onto floor it has not seen (the tail in a turn, or reversing; "
+        "after a start, drive forward a little first)"
+    ),
+    Reason.UNKNOWN_CREEP: "crossing floor not seen, slowly",
+    Reason.SOFTENED: "the turn asked for runs gentler",
+}
+
+
 @dataclass(frozen=True)
 class SafetySettings(Settings):
     """Footprint (mm, robot frame: axle midpoint origin), zones and limits."""
@@ -1319,9 +1337,11 @@ class SafetyLayer:
 
     def _report(self, d: SafetyDecision, now_s: float) -> SafetyDecision:
         for r in d.reasons:
+            why = REASON_TEXT.get(r)
             self.log.log(
                 r.value,
-                f"speed limited to {100 * d.scale:.0f}% (clearance {d.clearance_mm:.0f} mm)",
+                (f"{why}: " if why else "")
+                + f"speed limited to {100 * d.scale:.0f}% (clearance {d.clearance_mm:.0f} mm)",
                 now_s,
             )
         return d

@@ -133,6 +133,16 @@ def test_unseen_space_is_not_free_tail_reverse_and_arcs_are_refused():
         assert d.stopped and Reason.UNKNOWN_STOP in d.reasons, (v, w, d)
 
 
+def test_a_refusal_of_unseen_floor_is_logged_in_words_a_caregiver_reads(caplog):
+    """The journal names the reason's code and what it means: a turn refused at start-up for
+    the floor beside the chair (never seen) says so, and what to do."""
+    with caplog.at_level(logging.WARNING, logger="omnid.daemon.safety"):
+        SafetyLayer(S).check(unseen(), 0.0, 0.5, perception_age_s=0.1, now_s=1.0)
+    line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("unknown_stop"))
+    assert "floor it has not seen" in line and "drive forward a little first" in line
+    assert "speed limited to 0%" in line
+
+
 def test_straight_ahead_the_laser_cannot_see_the_footrests_band_it_is_crossed_at_creep():
     d = SafetyLayer(S).check(unseen(), 250.0, 0.0, perception_age_s=0.1)
     assert not d.stopped and Reason.UNKNOWN_CREEP in d.reasons
