@@ -76,7 +76,7 @@ from omnid.sim.rider import HeadScript, JoystickScript, KeyScript
 from omnid.sim.rigs import misaligned_rig
 from omnid.sim.settings import PerceptionMode, SimSettings
 from omnid.sim.story import Observation, ReactiveRider
-from omnid.sim.world import RigMount, World, cast_laser, rig_to_world
+from omnid.sim.world import LaserHits, RigMount, World, cast_laser, rig_to_world
 
 __all__ = [
     "FAULT_KINDS",
@@ -98,6 +98,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: The laser's dots in a frame it did not light: none.
+_NO_HITS = LaserHits(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, bool), np.zeros(0, np.uint8))
 
 Pose = tuple[float, float, float]
 
@@ -400,7 +403,10 @@ class Simulator:
         cache = self._rendered
         images = cache.get(frame.index)
         if images is None:
-            images = self.camera.render(frame, self.laser_hits(frame.pose, frame.world))
+            # a frame the laser never lit shows no dot: its rays are not cast (half the frames
+            # of the stream are masks; the images are the same without)
+            hits = self.laser_hits(frame.pose, frame.world) if frame.lit > 0 else _NO_HITS
+            images = self.camera.render(frame, hits)
             if len(cache) >= 8:
                 cache.pop(next(iter(cache)))
             cache[frame.index] = images
