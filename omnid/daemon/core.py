@@ -352,9 +352,13 @@ class ControlCore:
         try:
             self.map.update(cloud, offset, capture_time_s, source_mm=source)
         except Exception:
-            # a map half updated is not known to be right: no forward motion until a cloud
+            # a map half updated is not known to be right: it is forgotten (turning and
+            # reversing then meet unseen floor: refused) and no forward motion until a cloud
             # enters cleanly (the freshness rule, as with no perception yet)
             self.perception_time_s = None
+            clear = getattr(self.map, "clear", None)
+            if clear is not None:
+                clear()
             raise
         if len(cloud) == 0:
             return  # no dots: no evidence that the way is clear, the map's age keeps growing

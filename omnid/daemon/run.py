@@ -545,6 +545,12 @@ class Daemon:
                 exc,
             )
 
+    def _camera_reader_failed(self, what: str, exc: BaseException | str) -> None:
+        """The camera reader's task failed: counted, and the cameras count as lost (speed cap)
+        until it reads a pair again — nothing reads them meanwhile."""
+        self._camera_failed = True
+        self._perception_error(what, exc)
+
     def _apply_capture(self) -> None:
         """The capture cycle's laser and ``capturing`` requests into the core (whose next cycle
         puts the laser bit on the wire)."""
@@ -593,7 +599,7 @@ class Daemon:
             asyncio.create_task(
                 run_supervised(
                     "camera_reader", lambda: self._frame_reader(cycle), stopping,
-                    self._perception_error,
+                    self._camera_reader_failed,
                 ),
                 name="frames",
             ),

@@ -84,10 +84,11 @@ class CameraSettings(Settings):
     grayscale: bool = True
     # the longest exposure of a frame, s (the capture cycle keeps laser switches out of it)
     exposure_s: float = setting(0.008, 0.0001, 0.5)
-    # the middle of a frame's exposure is this long before its timestamp (a V4L2 driver stamps
-    # its buffer at the end of the frame, or without a usable stamp the read returns after
-    # the readout and transfer), s; subtracted from every timestamp
-    frame_latency_s: float = setting(0.0, 0.0, 1.0)
+    # the middle of a frame's exposure is this long before its timestamp, s; subtracted from
+    # every timestamp. A V4L2 driver's buffer stamp marks the start of the exposure (uvcvideo;
+    # then −exposure/2) or the end of the frame (then the readout), depending on the driver;
+    # without a usable stamp the pair is stamped when the read returned (readout + transfer)
+    frame_latency_s: float = setting(0.0, -0.5, 1.0)
 
 
 def _gray(img: Any, grayscale: bool) -> Image:
@@ -239,6 +240,10 @@ class StereoFrameSource:
 
 #: How long before a read a driver's buffer may have been captured (its queue of frames), s.
 MAX_BUFFER_AGE_S = 1.0
+#: Two cameras' stamps of one pair farther apart than this (s) are two exposure times, not one:
+#: the cameras are not synchronised, and the stream capture's laser labels (one time per pair,
+#: ± half an exposure and a 2 ms guard) may be off by the difference.
+PAIR_SPREAD_WARN_S = 0.004
 
 
 def pair_time(stamps_ms: list[float], t_before_s: float, t_grabbed_s: float) -> float:
@@ -278,6 +283,8 @@ class VideoCaptureSource(StereoFrameSource):
         self._loop = loop
         self._device = device
         self.detects_frozen = device  # a video file may hold a still
+        self._stamped_by_drivers: bool | None = None  # which clock stamps the pairs (logged)
+        self._spread_pairs = 0  # pairs whose two stamps lay apart (unsynchronised cameras)
         self._api = cv2.CAP_V4L2 if api is None else api
         self._caps = [self._open(spec) for spec in specs]
 
@@ -324,7 +331,9 @@ class VideoCaptureSource(StereoFrameSource):
         t_s = time.monotonic()
         if self._device:  # a file's "timestamp" is its position in the video
             pos = self._cv2.CAP_PROP_POS_MSEC
-            t_s = pair_time([cap.get(pos) for cap in self._caps], t_before, t_s)
+            stamps = [cap.get(pos) for cap in self._caps]
+            t_grabbed, t_s = t_s, pair_time(stamps, t_before, t_s)
+            self._note_stamps(stamps, t_s != t_grabbed)
         imgs = []
         for i, cap in enumerate(self._caps):
             ok, img = cap.retrieve()
@@ -332,6 +341,30 @@ class VideoCaptureSource(StereoFrameSource):
                 raise DeviceError(f"{self.name}: camera {self.specs[i]!r} frame not decodable")
             imgs.append(_gray(img, self.settings.grayscale))
         return imgs[0], imgs[1], t_s
+
+    def _note_stamps(self, stamps_ms: list[float], from_drivers: bool) -> None:
+        """Say once which clock stamps the pairs, and when the two cameras' stamps of a pair
+        lie apart (not synchronised: every 300th such pair, ~10 s at 30 frames/s)."""
+        if from_drivers != self._stamped_by_drivers:
+            self._stamped_by_drivers = from_drivers
+            log.info(
+                "%s: frame pairs stamped %s",
+                self.name,
+                "by the drivers' buffer timestamps"
+                if from_drivers
+                else "when read (the drivers' timestamps are not on the monotonic clock)",
+            )
+        if from_drivers:
+            spread_s = (max(stamps_ms) - min(stamps_ms)) / 1000.0
+            if spread_s > PAIR_SPREAD_WARN_S:
+                if self._spread_pairs % 300 == 0:
+                    log.warning(
+                        "%s: the cameras' frames of a pair were captured %.1f ms apart: they are "
+                        "not synchronised (laser labels may be off by as much)",
+                        self.name,
+                        1000.0 * spread_s,
+                    )
+                self._spread_pairs += 1
 
     def _flush_blocking(self) -> None:
         if not self._device:

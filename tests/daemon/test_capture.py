@@ -242,6 +242,8 @@ def test_a_loop_that_polls_late_still_takes_masks_and_never_mixes_laser_states(l
         assert b.failures == [] and len(jobs) / 3.0 >= 7.0, (seed, len(jobs))
         assert all(j.base.source == 1.0 for j in jobs)
         assert all(m.source == 0.0 for j in jobs for m in j.masks)
+        # a base subtracted against two masks lies between them (one before, one after)
+        assert all(j.masks[0].t_s < j.t_s < j.masks[-1].t_s for j in jobs if len(j.masks) == 2)
 
 
 def test_a_laser_too_slow_to_switch_between_frames_costs_the_frames_around_the_mask():

@@ -329,3 +329,42 @@ def test_a_capture_with_dots_not_understood_stays_out_of_the_map(caplog):
     assert cmds[-1].left_duty == 0.0 and cmds[-1].right_duty == 0.0
     core.on_perception(replace(floor_cloud(), not_understood=1), 5.0)  # a ghost pair: used
     assert len(m.clouds) == updates + 1
+
+
+def test_a_map_update_that_raises_forgets_the_map_and_refuses_until_a_clean_cloud():
+    """A bug half way through the map's update (its cells written, then an exception): the
+    map is not known to be right, so it is forgotten — everything unseen — and the core's
+    perception is stale (no forward motion) until a cloud enters cleanly."""
+    from omnid.core.freespace import FreeSpaceMap
+    from omnid.core.occupancy import CellState
+
+    class FailsWhenTold(FreeSpaceMap):
+        fail = False
+
+        def update(self, *args, **kwargs):
+            super().update(*args, **kwargs)
+            if self.fail:
+                self.fail = False
+                raise RuntimeError("a bug half way through the update")
+
+    cfg = OmnidConfig(
+        rider=RiderSettings(
+            tilt=TiltSettings(dwell_s=0.1, neutral_calibration_s=0.0),
+            joystick=JoystickSettings(enabled=False),
+        )
+    )
+    m = FailsWhenTold(cfg.freespace)
+    core = ControlCore(cfg, world_map=m)
+    arm(core)
+    core.on_perception(floor_cloud(), 0.0)
+    assert core.perception_time_s == 0.0 and np.any(m.grid.states == CellState.FREE)
+    m.fail = True
+    with pytest.raises(RuntimeError):
+        core.on_perception(floor_cloud(), 0.2)
+    assert core.perception_time_s is None
+    assert np.all(m.grid.states == CellState.UNKNOWN)  # forgotten, trail and all
+    cmds = run(core, Chair(), 0.2, 1.0, perceive=False)
+    assert all(c.left_duty == 0.0 and c.right_duty == 0.0 for c in cmds)
+    assert Reason.PERCEPTION_STALE in core.last_report.reasons
+    core.on_perception(floor_cloud(), 1.0)  # the next cloud enters cleanly
+    assert core.perception_time_s == 1.0 and np.any(m.grid.states == CellState.FREE)

@@ -74,12 +74,17 @@ def test_cancelling_the_supervisor_cancels_the_helper():
             cancelled.set()
             raise
 
+    failures: list[str] = []
+
     async def go() -> None:
-        task = asyncio.create_task(run_supervised("camera_reader", helper, lambda: False, print))
+        task = asyncio.create_task(
+            run_supervised("camera_reader", helper, lambda: False, lambda n, e: failures.append(n))
+        )
         await asyncio.sleep(0.05)
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await asyncio.wait_for(task, 1.0)
-        assert cancelled.is_set()
+        assert cancelled.is_set() and task.cancelled()
 
     asyncio.run(go())
+    assert failures == []  # a cancellation (the daemon stopping) is not a failure

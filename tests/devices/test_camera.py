@@ -349,3 +349,36 @@ def test_pair_time_trusts_the_drivers_monotonic_stamps_and_nothing_else():
         [],
     ):
         assert pair_time(stamps, before, grabbed) == grabbed, stamps
+
+
+def test_a_pair_stamped_apart_is_reported_as_unsynchronised_cameras(tmp_path, caplog):
+    """Which clock stamps the pairs is said once: video files read on the device path have
+    positions, not monotonic stamps (stamped when read); two cameras whose frames of a pair
+    were captured more than PAIR_SPREAD_WARN_S apart are named unsynchronised (not every
+    pair)."""
+    import logging
+
+    from omnid.devices.camera import PAIR_SPREAD_WARN_S
+
+    for cam in (1, 2):
+        _write_video(tmp_path / f"cam{cam}.avi", cam, 6)
+
+    async def go():
+        src = VideoCaptureSource(
+            (str(tmp_path / "cam1.avi"), str(tmp_path / "cam2.avi")), api=cv2.CAP_ANY
+        )
+        for _ in range(3):
+            await src.read_pair()
+        await src.close()
+        return src
+
+    with caplog.at_level(logging.INFO, logger="omnid.devices.camera"):
+        src = asyncio.run(go())
+        src._note_stamps([1000.0, 1001.0], True)  # a driver's monotonic stamps, 1 ms apart
+        apart = 1000.0 * (PAIR_SPREAD_WARN_S + 0.01)
+        for _ in range(301):
+            src._note_stamps([1000.0, 1000.0 + apart], True)
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("stamped when read" in m for m in said) == 1  # three pairs, said once
+    assert sum("stamped by the drivers' buffer timestamps" in m for m in said) == 1
+    assert sum("not synchronised" in m for m in said) == 2  # the 1st and the 301st such pair
