@@ -1341,7 +1341,9 @@ class SafetyLayer:
             self.log.log(
                 r.value,
                 (f"{why}: " if why else "")
-                + f"speed limited to {100 * d.scale:.0f}% (clearance {d.clearance_mm:.0f} mm)",
+                # rounded down: a slight limit reads 99 %, not a "limited to 100 %"
+                + f"speed limited to {math.floor(100 * d.scale)}% "
+                f"(clearance {d.clearance_mm:.0f} mm)",
                 now_s,
             )
         return d

@@ -143,6 +143,22 @@ def test_a_refusal_of_unseen_floor_is_logged_in_words_a_caregiver_reads(caplog):
     assert "speed limited to 0%" in line
 
 
+def test_a_slight_limit_is_logged_as_one_not_as_100_percent(caplog):
+    """A fast request just over a rule's cap (the approach to a wall far ahead) is limited by
+    a fraction of a per cent: the journal says "limited to 99%", not "limited to 100%"."""
+    g = free_grid()
+    xs, _ = g.cell_centers()
+    g.states[(xs > 1600) & (xs < 1700), :] = CellState.OBSTACLE  # a wall 1.4 m ahead
+    layer = SafetyLayer(S)
+    cap = layer.check(g, 600.0, 0.0, perception_age_s=0.1).v_mm_s  # ~570 mm/s here
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="omnid.daemon.safety"):
+        d = layer.check(g, 1.003 * cap, 0.0, perception_age_s=0.1, now_s=10.0)
+    assert 0.99 < d.scale < 1.0, d  # 99.7 %: "100%" when rounded to the nearest
+    lines = [r.getMessage() for r in caplog.records]
+    assert any("approach" in m and "limited to 99%" in m for m in lines), lines
+
+
 def test_straight_ahead_the_laser_cannot_see_the_footrests_band_it_is_crossed_at_creep():
     d = SafetyLayer(S).check(unseen(), 250.0, 0.0, perception_age_s=0.1)
     assert not d.stopped and Reason.UNKNOWN_CREEP in d.reasons
