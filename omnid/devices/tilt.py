@@ -126,6 +126,7 @@ class TiltHealth(LinkHealth):
     checksum_errors: int = 0
     range_errors: int = 0
     stale_episodes: int = 0
+    unsent_bytes_discarded: int = 0  # requests the line had not carried when the next went out
 
 
 class HidTransport(Transport):
@@ -304,6 +305,9 @@ class TiltSensorLink(PolledLink[TiltHealth]):
         assert t is not None
         h = self._health
         t.reset_input()  # a late reply to an earlier request must not pass for this one
+        # nor may requests the line did not carry (adapter held) go out as a burst behind this
+        # one, each answered: only the request of now is queued (as the control-unit link does)
+        h.unsent_bytes_discarded += t.reset_output()
         self._parser.reset()
         await t.write(codec.READ_ANGLES_REQUEST)
         h.requests += 1

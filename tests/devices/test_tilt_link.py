@@ -331,3 +331,49 @@ def test_a_port_that_never_answers_is_logged(tmp_path, caplog):
             emu.close()
     assert latest is None and h.replies_ok == 0 and not h.valid
     assert "not answering" in caplog.text and path in caplog.text
+
+
+def test_requests_the_line_did_not_carry_are_not_sent_later_as_a_burst():
+    """While the adapter holds the line the link goes on polling; the requests it could not
+    send are discarded before each new one, so when the line moves again the sensor sees at
+    most the last one — not a backlog it would answer one after the other."""
+    from test_cu_link import AdapterWithTxQueue
+
+    from omnid.devices.transport import LoopTransport
+
+    async def main() -> tuple[int, int, int]:
+        adapter, sensor_end = AdapterWithTxQueue("adapter"), LoopTransport("sensor")
+        adapter.peer, sensor_end.peer = sensor_end, adapter
+        emu = Gs311Emulator([(0.0, 0.0, 0.0)])
+
+        async def serve() -> None:
+            while True:
+                data = await sensor_end.read_some(64, 5.0)
+                reply = emu.handle(data)
+                if reply:
+                    await sensor_end.write(reply)
+
+        server = asyncio.create_task(serve())
+        link = TiltSensorLink(_link_settings("adapter"), transport_factory=lambda: adapter)
+        await link.start()
+        try:
+            await _until(lambda: link.latest is not None)
+            adapter.held = True
+            sent_before = link.health.requests
+            await asyncio.sleep(0.3)
+            held = link.health.requests - sent_before
+            answered_before, sent_at_release = emu.requests, link.health.requests
+            adapter.release()
+            await asyncio.sleep(0.05)  # the backlog, if any, reaches the sensor at once
+            # what reached the sensor beyond the requests sent since the release
+            burst = (emu.requests - answered_before) - (link.health.requests - sent_at_release)
+            await _until(lambda: link.latest is not None)  # and the link recovers
+            return held, burst, link.health.unsent_bytes_discarded
+        finally:
+            server.cancel()
+            await link.stop()
+
+    held, burst, discarded = asyncio.run(main())
+    assert held >= 5  # the link kept polling while the line was held
+    assert burst <= 1, f"{burst} held requests of {held} reached the sensor after the release"
+    assert discarded > 0
