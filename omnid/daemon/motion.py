@@ -22,7 +22,6 @@ Pipeline of one control cycle::
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -219,7 +218,12 @@ class Odometry:
         """
         t = float(t_s)
         clocks = (int(left_clocks), int(right_clocks))
-        self._hist.append((t, *clocks))
+        hist = self._hist
+        hist.append((t, *clocks))
+        # only what the speed estimate reads is kept: the window and the sample before it
+        since = t - float(self.settings.speed_window_s)
+        while len(hist) > 2 and hist[1][0] < since:
+            hist.popleft()
         mpc = self.settings.mm_per_clock
         if self._last is None:
             self._last = clocks
@@ -262,19 +266,10 @@ class Odometry:
 
     def wheel_speeds(self) -> tuple[float, float]:
         """Clock-based (left, right) wheel speeds, mm/s (:func:`window_speed`)."""
-        hist = self._hist
-        if len(hist) < 2:
+        if len(self._hist) < 2:
             return 0.0, 0.0
+        h = np.asarray(self._hist, dtype=np.float64)  # the window (update keeps no more)
         w, m = self.settings.speed_window_s, self.settings.mm_per_clock
-        # only the window and the sample before it (what window_speed reads): not the whole
-        # history's 256 samples turned into an array at every control cycle
-        since = hist[-1][0] - float(w)
-        start = 0
-        for k in range(len(hist) - 1, -1, -1):
-            if hist[k][0] < since:
-                start = k
-                break
-        h = np.asarray(list(itertools.islice(hist, start, None)), dtype=np.float64)
         return window_speed(h[:, 0], h[:, 1], w, m), window_speed(h[:, 0], h[:, 2], w, m)
 
 
