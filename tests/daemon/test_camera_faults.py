@@ -157,3 +157,46 @@ def test_a_camera_slow_to_open_does_not_block_the_event_loop(tmp_path):
     assert frames >= 1
     assert worst_gap < 0.3, f"the event loop stood still for {worst_gap:.2f} s"
     assert any("not open within" in f.message for f in failures), failures
+
+
+def test_a_camera_reader_that_dies_counts_as_lost_cameras_until_it_reads_again(
+    tmp_path, random_installations
+):
+    """The camera reader's task fails (a bug after a good read left nothing awaited and no
+    error set): while its supervisor waits to start it again, nothing reads the cameras, so
+    they count as lost (the speed cap), and the failure is counted as a perception error."""
+    from omnid.daemon.run import run_supervised
+
+    cfg = tmp_path / "omnid.yaml"
+    calib = tmp_path / "calibration.yaml"
+    random_installations[0][1].save(calib)  # a valid one (perception on); only the reader runs
+    cfg.write_text(
+        f"camera:\n  url: sim+unix://{tmp_path / 'frames.sock'}\n"
+        f"perception:\n  calibration_path: {calib}\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+    d = Daemon(ConfigHolder(cfg), notifier=None)
+    assert d.config.perception.enabled and d._camera_ok(time.monotonic())
+    runs = 0
+
+    async def reader() -> None:
+        nonlocal runs
+        runs += 1
+        if runs == 1:
+            raise RuntimeError("a bug in the reader")
+        await d._stop.wait()
+
+    async def go() -> bool:
+        task = asyncio.create_task(
+            run_supervised("camera_reader", reader, d._stop.is_set, d._camera_reader_failed,
+                           backoff_s=0.2)
+        )  # fmt: skip
+        while runs == 0:
+            await asyncio.sleep(0.01)
+        lost = not d._camera_ok(time.monotonic())  # during the backoff
+        d._stop.set()
+        await asyncio.wait_for(task, 2.0)
+        return lost
+
+    assert asyncio.run(go())
+    assert d.stats.perception_errors == 1 and runs == 1  # stopped during the backoff
