@@ -30,15 +30,6 @@ def room(
     )
 
 
-def passage(gap_mm: float, x_mm: float = 1800.0) -> tuple[Box, ...]:
-    """A partition across the room at ``x_mm`` with a centred gap ``gap_mm`` wide."""
-    h = gap_mm / 2.0
-    return (
-        Box(x_mm, x_mm + 100.0, -2000.0, -h, 1000.0),
-        Box(x_mm, x_mm + 100.0, h, 2000.0, 1000.0),
-    )
-
-
 def forward_rider(hold_s: float, start_s: float = 0.5) -> HeadScript:
     return head_script([("neutral", start_s), ("forward", hold_s)])
 

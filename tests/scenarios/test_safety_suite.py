@@ -1,6 +1,7 @@
 """A small, fast subset of the safety scenario suite (``omnid.sim.suite``; the whole suite, both
 riders, several seeds and pipeline perception: ``python tools/safety_figures.py --suite``,
-docs/benchmarks.md). Truth perception unless a test says otherwise; rates over seeds."""
+docs/benchmarks.md). Truth perception unless a test says otherwise. Where the seeds are few,
+each rider gets others: the rates over seeds are the tool's."""
 
 from __future__ import annotations
 
@@ -11,12 +12,12 @@ import pytest
 from omnid.sim.suite import SCENARIOS, clutter, run_trial, way_clear
 
 
-@pytest.mark.parametrize("kind", ["joystick", "tilt"])
-@pytest.mark.slow(seconds=7)
-def test_reversing_into_the_unseen_never_touches_the_box(kind):
+@pytest.mark.parametrize(("kind", "seeds"), [("joystick", (0, 1, 2)), ("tilt", (1,))])
+@pytest.mark.slow(seconds=4)
+def test_reversing_into_the_unseen_never_touches_the_box(kind, seeds):
     """A box 300 mm behind the chair, never seen: reversing (the head rider: turning round)
     is refused, whatever the seed."""
-    for seed in range(3):
+    for seed in seeds:
         r = run_trial(SCENARIOS["reversing into the unseen"](kind, seed))  # type: ignore[arg-type]
         assert r.contacts == 0 and r.falls == 0, seed
         assert r.refusals.get("unknown_stop", 0) > 0
@@ -30,24 +31,26 @@ def test_with_the_creep_policy_reversing_into_the_unseen_is_a_noticed_bump():
     assert r.refusals.get("bump", 0) > 0
 
 
-@pytest.mark.parametrize("kind", ["joystick", "tilt"])
-@pytest.mark.slow(seconds=6)
-def test_turning_beside_an_unseen_wall_never_swings_the_tail_into_it(kind):
-    for seed in range(2):
-        r = run_trial(SCENARIOS["turn beside an unseen wall"](kind, seed))  # type: ignore[arg-type]
-        assert r.contacts == 0, seed
-        assert r.refusals.get("unknown_stop", 0) > 0
+@pytest.mark.parametrize(("kind", "seed"), [("joystick", 0), ("tilt", 1)])
+@pytest.mark.slow(seconds=4)
+def test_turning_beside_an_unseen_wall_never_swings_the_tail_into_it(kind, seed):
+    r = run_trial(SCENARIOS["turn beside an unseen wall"](kind, seed))  # type: ignore[arg-type]
+    assert r.contacts == 0
+    assert r.refusals.get("unknown_stop", 0) > 0
 
 
-@pytest.mark.parametrize(("width", "seed"), [(900, 0), (900, 1), (780, 0)])
+@pytest.mark.parametrize(("width", "seed"), [(900, 0), (780, 0)])
 @pytest.mark.slow(seconds=5)
 def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refused(width, seed):
     """Truth perception, the joystick steering through from 3.5 m off (±10°, ±80 mm): a 900 mm
     doorway is passed without a safety stop at the door; a 780 mm one (the chair 700 + 2 × 25 side margin +
     the rider's aim) is never touched. (One trial per test: the suite's workers share them.)
-    32 s of the trial's 60: the 900 mm door is passed by ~25 s, the chair stands before the
-    780 mm one from ~21 s (and lets go at ~23 s)."""
-    trial = dataclasses.replace(SCENARIOS[f"doorway {width} mm"]("joystick", seed), duration_s=32.0)
+    Of the trial's 60 s, 32: the 900 mm door is passed by ~25 s; 26: the chair stands before
+    the 780 mm one from ~21 s (and lets go at ~23 s)."""
+    trial = dataclasses.replace(
+        SCENARIOS[f"doorway {width} mm"]("joystick", seed),
+        duration_s=32.0 if width == 900 else 26.0,
+    )
     r = run_trial(trial)
     assert r.contacts == 0, seed
     if width == 900:
@@ -64,14 +67,14 @@ def test_doorways_wider_than_the_chair_and_its_margins_are_passed_narrower_refus
         assert any("obstacle_stop" in said and retry == "back" for _, said, retry in log), log
 
 
-@pytest.mark.parametrize("kind", ["joystick", "tilt"])
 @pytest.mark.slow(seconds=8)
-def test_a_thin_post_with_pipeline_perception_stops_the_chair_before_it(kind):
+def test_a_thin_post_with_pipeline_perception_stops_the_chair_before_it():
     # the shipped stream capture on a worker perceiving at most 10 clouds/s (the suite's time;
     # as tests/scenarios/test_scenarios.py)
     slower = {"worker_period_s": 0.1, "perceive_time_s": 0.01}
-    # 20 s of the trial's 30: at rest before the post from ~15 s (the same figures as 30 s)
-    trial = dataclasses.replace(SCENARIOS["thin post"](kind, 0), duration_s=20.0)  # type: ignore[arg-type]
+    # the head rider (both riders: the tool); 20 s of the trial's 30: at rest before the post
+    # from ~15 s (the same figures as 30 s)
+    trial = dataclasses.replace(SCENARIOS["thin post"]("tilt", 0), duration_s=20.0)  # type: ignore[arg-type]
     r = run_trial(trial, "pipeline", sim_changes=slower)
     assert r.contacts == 0
     assert 100.0 < r.stop_clearance_mm < 400.0

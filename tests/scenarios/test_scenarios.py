@@ -7,6 +7,11 @@ the suite fast).
 
 Outcomes are measured against the world's truth (footprint against boxes, wheels against
 drop-off edges), never against what the daemon believes.
+
+A passage passed and a narrower one refused, and a stop before stairs, with pipeline perception:
+the demo story (tests/sim/test_simulator.py) meets all three in one ride; doorways with truth
+perception: tests/scenarios/test_safety_suite.py; over many starts, seeds and both riders:
+``python tools/safety_figures.py --suite`` and ``tools/eval_passage_phantom.py``.
 """
 
 from __future__ import annotations
@@ -15,12 +20,12 @@ import dataclasses
 
 import numpy as np
 import pytest
-from scenario_helpers import STANDSTILL_MM_S, brake_time_s, forward_rider, make_core, passage, room
+from scenario_helpers import STANDSTILL_MM_S, brake_time_s, forward_rider, make_core, room
 
 from omnid.core.types import PointClass
 from omnid.sim.rider import head_script
 from omnid.sim.simulator import SimSettings, Simulator
-from omnid.sim.world import Box, DropOff
+from omnid.sim.world import Box
 
 # The shipped stream capture (a cloud per laser-on frame of the 30 frames/s cameras) on a
 # computer that perceives at most 10 clouds/s (half this one's rate; the worker drops what it
@@ -47,56 +52,6 @@ def test_forward_at_a_wall_stops_with_the_promised_margin_and_never_touches_it()
     assert any("obstacle_stop" in r for _, r in result.refusals)
     assert result.timings["tilt_bytes_link"] == 1.0 and result.timings["bytes_link"] == 1.0
     assert result.timings["perception_cycles"] >= 40
-
-
-@pytest.mark.slow(seconds=22)
-def test_passes_a_passage_wider_than_the_chair():
-    """Three starts (offset, heading, timing): no contact in any, through in at least two. One
-    in eight starts captures the frames at the one pose where the pipeline puts a phantom row
-    across the gap 100 mm in front of the footrests (the lattice's one-row ambiguity, the rig
-    86 mm before the partition's face: perception, issue 9); there no later capture can see it
-    again and the head-tilt rider, who has no reverse, stays. The partition 1100 mm ahead (in
-    the first capture's view): the front reaches the gap at ~8.5 s, the tail is through at
-    ~17 s."""
-    from omnid.sim.course import Course
-
-    base = room(passage(1300.0, x_mm=1100.0), length_mm=6000.0)  # chair 700 mm (+2 x 50 margin)
-    through = 0
-    for k in range(3):
-        start = (-23.0 * k, 40.0 * (k % 3 - 1), 0.01 * (k % 5 - 2))
-        course = Course(base.name, base.world, start, base.x_range_mm, base.y_range_mm)
-        rider = forward_rider(30.0, start_s=0.5 + 0.07 * k)
-        settings = dataclasses.replace(PIPELINE, seed=k)
-        result = Simulator(course, make_core(), settings, rider=rider).run(18.5)
-        assert result.contacts == []
-        through += result.trajectory[:, 1].max() > 1200.0 + 750.0  # the whole chair is through
-    assert through >= 2
-
-
-@pytest.mark.slow(seconds=7)
-def test_refuses_a_passage_narrower_than_the_chair():
-    core = make_core()
-    course = room(passage(600.0), length_mm=6000.0)
-    # at rest before the gap from ~17 s
-    result = Simulator(course, core, PIPELINE, rider=forward_rider(21.0)).run(21.0)
-    assert result.contacts == []
-    front = result.trajectory[:, 1].max() + 350.0
-    assert front < 1800.0  # never entered the gap
-    assert result.max_speed_between(20.0, 21.0) < 1.0
-    assert any("obstacle_stop" in r for _, r in result.refusals)
-
-
-@pytest.mark.slow(seconds=8)
-def test_stops_before_a_drop_off():
-    core = make_core()
-    stairs = DropOff(2200.0, 5000.0, -2000.0, 2000.0, 170.0)
-    course = room(dropoffs=(stairs,), length_mm=6000.0)
-    # at rest before the edge from ~19 s
-    result = Simulator(course, core, PIPELINE, rider=forward_rider(22.0)).run(22.0)
-    assert result.falls == [] and result.contacts == []
-    assert result.min_clearance_mm > 0.0  # no wheel over the edge
-    assert result.trajectory[:, 1].max() + 350.0 < 2200.0
-    assert any("dropoff_stop" in r for _, r in result.refusals)
 
 
 @pytest.mark.slow(seconds=8)
@@ -178,7 +133,7 @@ def test_fault_stops_the_wheels_in_the_promised_time_then_recovers(kind):
     from omnid.sim.simulator import Fault
 
     core = make_core()
-    t0, t1 = 8.0, 11.0
+    t0, t1 = 5.0, 8.0  # driving at full speed from ~3 s
     sim = Simulator(
         room(length_mm=9000.0),
         core,
@@ -186,13 +141,13 @@ def test_fault_stops_the_wheels_in_the_promised_time_then_recovers(kind):
         rider=forward_rider(30.0),
         faults=(Fault(kind, t0, t1),),  # type: ignore[arg-type]
     )
-    result = sim.run(16.0)
+    result = sim.run(12.0)
     assert result.contacts == []
     assert result.max_speed_between(t0 - 1.0, t0) > 50.0  # it was driving
     took = result.time_to_standstill(t0, STANDSTILL_MM_S)
     assert took <= _promised_s(kind, core), f"{kind}: {took:.2f} s"
     assert result.max_speed_between(t0 + took + 0.1, t1) < STANDSTILL_MM_S  # stays stopped
-    assert result.max_speed_between(t1, 16.0) > 50.0  # recovered: driving again
+    assert result.max_speed_between(t1, 12.0) > 50.0  # recovered: driving again
 
 
 def test_a_box_the_map_never_held_is_bumped_once_the_chair_stops_and_backs_away():

@@ -290,6 +290,7 @@ def test_demo_story_with_pipeline_perception():
     # a turn's swing nears what is beside the chair to its stopping distance and buffer outside
     # the side margin (25 mm), not the 150 mm stop zone (measured 46 mm at box 3): the margin kept
     assert result.contacts == [] and result.min_clearance_mm > 25.0
+    assert result.falls == []  # no wheel over the stairs' edge
     failed = [(what, ev) for what, ok, ev in story_checks(result) if not ok]
     assert failed == []
     # the reactive rider: every step ends by what the chair did (not by its timeout), in order;
