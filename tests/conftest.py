@@ -31,6 +31,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default=3.0,
         help="simulated minutes of tests/scenarios/test_soak.py (3 in CI; the half hour: 30)",
     )
+    parser.addoption(
+        "--fuzz-streams",
+        type=int,
+        default=30_000,
+        help="random streams of the control-unit parser fuzz, tests/devices/test_cu_codec.py "
+        "(30 000 in CI; docs/benchmarks.md's figure: 100 000)",
+    )
 
 
 def pytest_configure(config: pytest.Config) -> None:

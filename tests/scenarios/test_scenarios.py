@@ -38,17 +38,18 @@ TRUTH = SimSettings(perception="truth")
 @pytest.mark.slow(seconds=8)
 def test_forward_at_a_wall_stops_with_the_promised_margin_and_never_touches_it():
     core = make_core()
-    course = room(length_mm=3500.0)  # front wall face at x = 2500 mm
-    # the last creep ends ~22.4 s (approach_min_speed_mm_s); 2.6 s standing after it
-    result = Simulator(course, core, PIPELINE, rider=forward_rider(25.0)).run(25.0)
+    course = room(length_mm=2800.0)  # front wall face at x = 1800 mm
+    # full speed from ~7 s, into the slow zone; the last creep ends ~17 s
+    # (approach_min_speed_mm_s); 2 s standing after it
+    result = Simulator(course, core, PIPELINE, rider=forward_rider(19.0)).run(19.0)
     assert result.contacts == []
     # The safety layer keeps the footprint plus its margin out of the stop zone; the chair
     # stands still at the end and its footprint is at least the margin from the wall.
     margin = core.config.safety.margin_mm  # type: ignore[attr-defined]
     assert result.min_clearance_mm >= margin
     assert result.min_clearance_mm < margin + core.config.safety.slow_distance_mm  # type: ignore[attr-defined]
-    assert result.max_speed_between(24.0, 25.0) < 1.0
-    assert result.distance_mm > 1500.0  # it drove up to the wall (its front starts 2150 mm from it)
+    assert result.max_speed_between(18.0, 19.0) < 1.0
+    assert result.distance_mm > 1000.0  # it drove up to the wall (its front starts 1450 mm from it)
     assert any("obstacle_stop" in r for _, r in result.refusals)
     assert result.timings["tilt_bytes_link"] == 1.0 and result.timings["bytes_link"] == 1.0
     assert result.timings["perception_cycles"] >= 40
@@ -91,8 +92,9 @@ def test_turn_toward_a_remembered_obstacle_outside_the_laser_field_is_refused():
     # (softening off: it would run the turn with a forward component instead, clear of the box)
     plain = dataclasses.replace(cfg.safety, unknown_policy="creep", soften=False)
     creep = ControlCore(dataclasses.replace(cfg, safety=plain))
-    slow = head_script([("neutral", 0.5), ("forward", 9.0), ("neutral", 1.0), ("left", 16.0)])
-    result = Simulator(course, creep, TRUTH, rider=slow).run(27.5)
+    # (refused at ~17.7 s, the front-left corner at the stop line, ~20° turned)
+    slow = head_script([("neutral", 0.5), ("forward", 9.0), ("neutral", 1.0), ("left", 9.0)])
+    result = Simulator(course, creep, TRUTH, rider=slow).run(19.5)
     assert result.contacts == [] and result.min_clearance_mm > 25.0  # the side margin
     assert any(r.startswith("refused left: obstacle_stop") for _, r in result.refusals)
     assert abs(result.trajectory[-1, 3]) < np.radians(45.0)  # the box 120 mm beside it
