@@ -217,6 +217,63 @@ class Registration:
         return self.outcome == "applied"
 
 
+class UnseenCells:
+    """A map's never-seen cells within ``range_mm`` of the axle (:meth:`FreeSpaceMap.unseen_cells`),
+    moved exactly into the robot frame of ``pose`` only where asked (:meth:`within`).
+
+    ``anchor_xy``: the anchor grid's UNKNOWN cell centres (N, 2), anchor frame mm, in row order
+    (x never decreases); ``beyond``: the anchor's lattice continued past its edges (M, 2), or
+    None; ``grow_mm``: how far from its centre anything in a cell may lie (its half-diagonal)."""
+
+    def __init__(
+        self,
+        anchor_xy: NDArray[np.float64],
+        beyond: NDArray[np.float64] | None,
+        pose: tuple[float, float, float],
+        range_mm: float,
+        grow_mm: float,
+    ) -> None:
+        self._xy, self._beyond = anchor_xy, beyond
+        self._pose, self._range_mm = pose, range_mm
+        self.grow_mm = grow_mm
+
+    def within(
+        self, x_min_mm: float, x_max_mm: float, y_min_mm: float, y_max_mm: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The cells whose robot-frame centre lies in the box (bounds included): (x, y) mm, in
+        the order of :meth:`FreeSpaceMap.unknown_cells`, each moved by the same arithmetic —
+        so a box cut of that array, bit for bit. Only the cells inside the box's outline in the
+        anchor frame (padded by 1 mm against rounding) are moved."""
+        x, y, th = self._pose
+        c, sn = math.cos(th), math.sin(th)
+        r = self._range_mm
+        boxed = math.isfinite(x_min_mm + x_max_mm + y_min_mm + y_max_mm)
+        lo_x, hi_x, lo_y, hi_y = x - r, x + r, -math.inf, math.inf
+        if boxed:
+            bx = np.array([x_min_mm, x_min_mm, x_max_mm, x_max_mm])
+            by = np.array([y_min_mm, y_max_mm, y_min_mm, y_max_mm])
+            ax, ay = x + c * bx - sn * by, y + sn * bx + c * by
+            lo_x, hi_x = max(lo_x, float(ax.min()) - 1.0), min(hi_x, float(ax.max()) + 1.0)
+            lo_y, hi_y = float(ay.min()) - 1.0, float(ay.max()) + 1.0
+        # the centres come row by row: x never decreases
+        k0 = int(np.searchsorted(self._xy[:, 0], max(x - r, lo_x), "left"))
+        k1 = int(np.searchsorted(self._xy[:, 0], min(x + r, hi_x), "right"))
+        xy = self._xy[k0:k1]
+        parts = [xy[(xy[:, 1] >= lo_y) & (xy[:, 1] <= hi_y)] if boxed else xy]
+        if self._beyond is not None:
+            b = self._beyond
+            if boxed:
+                b = b[(b[:, 0] >= lo_x) & (b[:, 0] <= hi_x) & (b[:, 1] >= lo_y) & (b[:, 1] <= hi_y)]
+            parts.append(b)
+        xy = parts[0] if len(parts) == 1 else np.vstack(parts)
+        dx, dy = xy[:, 0] - x, xy[:, 1] - y
+        near = dx * dx + dy * dy <= r * r
+        dx, dy = dx[near], dy[near]
+        rx, ry = c * dx + sn * dy, -sn * dx + c * dy
+        keep = (rx >= x_min_mm) & (rx <= x_max_mm) & (ry >= y_min_mm) & (ry <= y_max_mm)
+        return rx[keep], ry[keep]
+
+
 class FreeSpaceMap:
     """A remembered FREE / OBSTACLE / DROPOFF / UNKNOWN map around the chair (robot frame)."""
 
@@ -844,37 +901,36 @@ class FreeSpaceMap:
         the range reaches past it, the anchor's lattice continued there is returned too (the
         anchor covers the robot grid's sides, not always its corners turned towards an axis,
         and a long horizon reaches farther). An infinite range is the robot grid's farthest
-        corner."""
+        corner. :meth:`unseen_cells` gives the same cells a box at a time."""
+        view = self.unseen_cells(max_range_mm)
+        return np.column_stack(view.within(-math.inf, math.inf, -math.inf, math.inf)), view.grow_mm
+
+    def unseen_cells(self, max_range_mm: float = math.inf) -> UnseenCells:
+        """:meth:`unknown_cells` as a view that moves them into the robot frame only box by box
+        (:meth:`UnseenCells.within`): a control cycle's sweeps reach a few hundred of the ten
+        thousand cells within its horizon."""
         if self._unknown[0] != self.version:
             a = self._anchor
             i, j = np.nonzero(a.states == CellState.UNKNOWN)
             xs, ys = a.cell_centers()
             self._unknown = (self.version, np.column_stack([xs[i], ys[j]]))
-        xy = self._unknown[1]
-        x, y, th = self._pose
-        c, sn = math.cos(th), math.sin(th)
         if not math.isfinite(max_range_mm):
             g = self.settings.grid
             max_range_mm = math.hypot(
                 max(abs(g.x_min_mm), abs(g.x_max_mm)), max(abs(g.y_min_mm), abs(g.y_max_mm))
             )
-        # the centres come row by row: x never decreases
-        k0 = int(np.searchsorted(xy[:, 0], x - max_range_mm, "left"))
-        k1 = int(np.searchsorted(xy[:, 0], x + max_range_mm, "right"))
-        xy = xy[k0:k1]
+        x, y, _ = self._pose
         st = self._anchor_settings
+        beyond = None
         if (
             x - max_range_mm < st.x_min_mm
             or x + max_range_mm > st.x_max_mm
             or y - max_range_mm < st.y_min_mm
             or y + max_range_mm > st.y_max_mm
         ):
-            xy = np.vstack([xy, self._beyond_anchor(x, y, max_range_mm)])
-        dx, dy = xy[:, 0] - x, xy[:, 1] - y
-        near = dx * dx + dy * dy <= max_range_mm * max_range_mm
-        dx, dy = dx[near], dy[near]
-        robot = np.column_stack([c * dx + sn * dy, -sn * dx + c * dy])
-        return robot, 0.5 * st.resolution_mm * math.sqrt(2.0)
+            beyond = self._beyond_anchor(x, y, max_range_mm)
+        grow = 0.5 * st.resolution_mm * math.sqrt(2.0)
+        return UnseenCells(self._unknown[1], beyond, self._pose, max_range_mm, grow)
 
     def _beyond_anchor(self, x_mm: float, y_mm: float, range_mm: float) -> NDArray[np.float64]:
         """Centres (N, 2), anchor frame mm, of the anchor's lattice continued past its edges

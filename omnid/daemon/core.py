@@ -421,7 +421,10 @@ class ControlCore:
         sf = self.config.safety
         reach = sf.horizon_mm + self.safety.r_max_mm + self.grid.settings.resolution_mm
         key = (getattr(self.map, "version", None), getattr(self.map, "pose_in_anchor", None))
-        unknown = getattr(self.map, "unknown_cells", None)
+        # a view: the cells are moved into the robot frame only where a sweep reaches
+        unknown = getattr(self.map, "unseen_cells", None) or getattr(
+            self.map, "unknown_cells", None
+        )
         return get(reach), key, None if unknown is None else unknown(reach)
 
     def step(self, now_s: float) -> WheelCommand:

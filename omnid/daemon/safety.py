@@ -90,6 +90,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnid.config import Settings, require, setting
+from omnid.core.freespace import UnseenCells
 from omnid.core.kinematics import integrate_arc
 from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid
 
@@ -356,8 +357,25 @@ def contact_path_s(
 Evidence = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
 #: Never-seen cells in the robot frame: their centres (N, 2) mm and how far from its centre
-#: anything in a cell may lie (mm, a cell's half-diagonal) (``FreeSpaceMap.unknown_cells``).
-Unseen = tuple[NDArray[np.float64], float]
+#: anything in a cell may lie (mm, a cell's half-diagonal) (``FreeSpaceMap.unknown_cells``), or
+#: the same as a view moved into the robot frame box by box (``FreeSpaceMap.unseen_cells``).
+Unseen = tuple[NDArray[np.float64], float] | UnseenCells
+
+
+class _ListedUnseen:
+    """:class:`~omnid.core.freespace.UnseenCells`' interface over cells already in the robot
+    frame (an :data:`Unseen` tuple)."""
+
+    def __init__(self, xy: NDArray[np.float64], grow_mm: float) -> None:
+        self._x, self._y = xy[:, 0], xy[:, 1]
+        self.grow_mm = float(grow_mm)
+
+    def within(
+        self, x_min_mm: float, x_max_mm: float, y_min_mm: float, y_max_mm: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        x, y = self._x, self._y
+        keep = (x >= x_min_mm) & (x <= x_max_mm) & (y >= y_min_mm) & (y <= y_max_mm)
+        return x[keep], y[keep]
 
 
 class _Sweep(NamedTuple):
@@ -449,7 +467,7 @@ class SafetyLayer:
         # per twist: unknown_clearance's (unseen, blind) and unknown_contacts' (leading, swing)
         self._unknown: dict[tuple[float, float], tuple[float, float, float, float]] = {}
         # the never-seen cells given to :meth:`check` (None: the grid's UNKNOWN cells)
-        self._unseen: Unseen | None = None
+        self._unseen: UnseenCells | _ListedUnseen | None = None
         self._unseen_key: object = None  # the evidence key the last check named them by
         self._centres_cache: (
             tuple[GridSettings, NDArray[np.float64], NDArray[np.float64]] | None
@@ -833,13 +851,12 @@ class SafetyLayer:
         if self._unseen is not None:
             # the map's never-seen cells, moved into this frame exactly (a turned cell: its
             # extent within its half-diagonal); off the grid, as above, the grid's own cells
-            uxy, ugrow = self._unseen
-            ux, uy = uxy[:, 0], uxy[:, 1]
+            ugrow = self._unseen.grow_mm
             bx0, bx1 = g.x_min_mm + i0 * res - ugrow, g.x_min_mm + i1 * res + ugrow
             by0, by1 = g.y_min_mm + j0 * res - ugrow, g.y_min_mm + j1 * res + ugrow
-            near = (ux >= bx0) & (ux <= bx1) & (uy >= by0) & (uy <= by1)
-            px = np.concatenate([px, ux[near]])
-            py = np.concatenate([py, uy[near]])
+            ux, uy = self._unseen.within(bx0, bx1, by0, by1)
+            px = np.concatenate([px, ux])
+            py = np.concatenate([py, uy])
             h = max(h, float(ugrow))
         body = (self._fx0, self._fx1, self._fy0, self._fy1)
         s_mm = contact_path_s(px, py, v_mm_s, omega_rad_s, body, u, s.horizon_mm)
@@ -1059,7 +1076,8 @@ class SafetyLayer:
             raise ValueError("SafetyLayer.check: unseen cells need an evidence_key naming them")
         # kept until the next check: the caches are keyed on this map content, exact cells
         # included, so a later unknown_clearance for another request must read the same cells
-        self._unseen, self._unseen_key = unseen, evidence_key
+        self._unseen = _ListedUnseen(*unseen) if isinstance(unseen, tuple) else unseen
+        self._unseen_key = evidence_key
         return self._check(
             grid, v_mm_s, omega_rad_s, perception_age_s, now_s, evidence, evidence_key
         )

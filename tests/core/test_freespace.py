@@ -471,3 +471,29 @@ def test_never_seen_cells_include_the_space_beyond_the_stored_grid():
     assert np.hypot(every[:, 0], every[:, 1]).max() > 5000.0 - h  # beyond the range above
     d = np.array([np.hypot(*(far - p).T).min() for p in every])
     assert d.max() <= h + 1e-6
+
+
+def test_the_unseen_view_cut_by_a_box_is_the_box_cut_of_every_unknown_cell_bit_for_bit():
+    """What the safety layer reads of the never-seen cells a sweep at a time (unseen_cells'
+    ``within``) is exactly what it read before, cut from all of them (unknown_cells): the same
+    cells, in the same order, moved by the same arithmetic — over random maps, turned and
+    offset chairs (the range reaching past the stored grid or not) and boxes about the chair."""
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        m = FreeSpaceMap()
+        seen = rng.random(m._anchor.states.shape) < rng.uniform(0.2, 0.9)
+        m._anchor.states[seen] = CellState.FREE
+        m.move(rng.uniform(-950.0, 950.0), rng.uniform(-600.0, 600.0), rng.uniform(-np.pi, np.pi))
+        reach = rng.choice([2000.0, 3433.5, 6000.0])
+        cells, h = m.unknown_cells(reach)
+        view = m.unseen_cells(reach)
+        assert view.grow_mm == h
+        for _ in range(5):
+            x0, y0 = rng.uniform(-reach, reach, 2)
+            x1, y1 = x0 + rng.uniform(0.0, 2500.0), y0 + rng.uniform(0.0, 2500.0)
+            bx, by = view.within(x0, x1, y0, y1)
+            cut = cells[(cells[:, 0] >= x0) & (cells[:, 0] <= x1)
+                        & (cells[:, 1] >= y0) & (cells[:, 1] <= y1)]  # fmt: skip
+            assert np.array_equal(np.column_stack([bx, by]), cut), trial
+        whole = view.within(-math.inf, math.inf, -math.inf, math.inf)
+        assert np.array_equal(np.column_stack(whole), cells)
