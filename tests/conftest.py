@@ -28,8 +28,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--soak-minutes",
         type=float,
-        default=3.0,
-        help="simulated minutes of tests/scenarios/test_soak.py (3 in CI; the half hour: 30)",
+        default=2.0,
+        help="simulated minutes of tests/scenarios/test_soak.py (2 in CI; the half hour: 30)",
     )
     parser.addoption(
         "--fuzz-streams",
