@@ -17,6 +17,7 @@ perception: tests/scenarios/test_safety_suite.py; over many starts, seeds and bo
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
@@ -57,44 +58,45 @@ def test_forward_at_a_wall_stops_with_the_promised_margin_and_never_touches_it()
 
 @pytest.mark.slow(seconds=8)
 def test_turn_toward_a_remembered_obstacle_outside_the_laser_field_is_refused():
+    """The chair drives up beside a box it saw on the way, now outside the laser's field; a turn
+    towards it is refused from the map's memory of it (obstacle_stop). With the shipped policy
+    the turn's tail would first meet floor never seen (unknown_stop: the unseen-wall turns of
+    tests/scenarios/test_safety_suite.py), so this runs the creep policy, which lets the tail
+    cross it slowly: then the box itself refuses the turn once the front-left corner reaches the
+    stop line before it (the map holds the box's seen points exactly: the turn gets that far)."""
     from omnid.daemon.core import ControlCore
 
     # ahead on the left, then beside the chair: 120 mm from its side, within the reach of the
     # front-left corner (495 mm from the axle, with the margins 548) in a turn in place
     box = Box(300.0, 1300.0, 470.0, 930.0, 500.0)
     course = room((box,), length_mm=6000.0)
-    rider = head_script([("neutral", 0.5), ("forward", 9.0), ("neutral", 1.0), ("left", 6.0)])
-    core = make_core()
-    sim = Simulator(course, core, TRUTH, rider=rider)
-    result = sim.run(17.5)
-    assert result.contacts == []
-    x_end = result.trajectory[-1, 1]
-    assert 900.0 < x_end < 1300.0  # it drove up beside the box (its rig is past the box)
-    # The box is now outside the laser's field: no dot of the current pattern falls on it ...
-    hits = sim.laser_hits()
-    assert not np.any(hits.truth[hits.visible] == PointClass.OBSTACLE)
-    # ... yet the map remembers it where it stands (its seen points, exactly) — and the turn is
-    # refused: its tail would swing over the floor beside where the chair started, never seen
-    # (unknown_stop, the shipped policy).
-    refusals = [r for _, r in result.refusals if r.startswith("refused left")]
-    assert refusals and all("unknown_stop" in r for r in refusals)
-    assert abs(result.trajectory[-1, 3]) < np.radians(15.0)
-    x, y, th = sim.chair.pose
-    pts = core.map.obstacle_points  # type: ignore[attr-defined]
-    c, s = np.cos(th), np.sin(th)
-    wx, wy = x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]
-    on_box = (wx > box.x_min_mm - 40) & (wx < box.x_max_mm + 40) & (wy > box.y_min_mm - 40)
-    assert np.count_nonzero(on_box & (wy < box.y_max_mm + 40)) > 10
-    # With the creep policy the tail may cross the unseen floor slowly: then the box itself
-    # refuses the turn from memory (obstacle_stop) once the front-left corner reaches the stop
-    # line before it (the map holds the box's seen points exactly: the turn gets that far).
-    cfg = core.config  # type: ignore[attr-defined]
+    cfg = make_core().config  # type: ignore[attr-defined]
     # (softening off: it would run the turn with a forward component instead, clear of the box)
     plain = dataclasses.replace(cfg.safety, unknown_policy="creep", soften=False)
-    creep = ControlCore(dataclasses.replace(cfg, safety=plain))
+    core = ControlCore(dataclasses.replace(cfg, safety=plain))
+    seen: dict[str, Any] = {}
+
+    def before_the_turn(now_s: float, sim: Simulator) -> None:
+        if 10.0 <= now_s < 10.5 and not seen:  # forward done, the head neutral
+            hits = sim.laser_hits()
+            x, y, th = sim.chair.pose
+            pts = core.map.obstacle_points
+            c, s = np.cos(th), np.sin(th)
+            wx, wy = x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]
+            on_box = (wx > box.x_min_mm - 40) & (wx < box.x_max_mm + 40)
+            on_box &= (wy > box.y_min_mm - 40) & (wy < box.y_max_mm + 40)
+            seen.update(x=x, lit=hits.truth[hits.visible], remembered=np.count_nonzero(on_box))
+
     # (refused at ~17.7 s, the front-left corner at the stop line, ~20° turned)
-    slow = head_script([("neutral", 0.5), ("forward", 9.0), ("neutral", 1.0), ("left", 9.0)])
-    result = Simulator(course, creep, TRUTH, rider=slow).run(19.5)
+    rider = head_script([("neutral", 0.5), ("forward", 9.0), ("neutral", 1.0), ("left", 9.0)])
+    sim = Simulator(course, core, TRUTH, rider=rider, progress=before_the_turn)
+    result = sim.run(19.5)
+    assert seen, "no progress report before the turn"
+    assert 900.0 < seen["x"] < 1300.0  # it drove up beside the box
+    # the box is outside the laser's field: no dot of the current pattern falls on it ...
+    assert not np.any(seen["lit"] == PointClass.OBSTACLE)
+    # ... yet the map remembers it where it stands (its seen points, exactly)
+    assert seen["remembered"] > 10
     assert result.contacts == [] and result.min_clearance_mm > 25.0  # the side margin
     assert any(r.startswith("refused left: obstacle_stop") for _, r in result.refusals)
     assert abs(result.trajectory[-1, 3]) < np.radians(45.0)  # the box 120 mm beside it
