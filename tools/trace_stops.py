@@ -101,8 +101,12 @@ class Tracer:
                 px, py = xs[ii], ys[jj]
                 h = 0.5 * grid.settings.resolution_mm * math.sqrt(2.0)
             else:  # the map's own never-seen cells, moved exactly (what the layer reads)
-                (uxy, h) = unseen
-                px, py = uxy[:, 0], uxy[:, 1]
+                if isinstance(unseen, tuple):  # (centres (N, 2), half-diagonal)
+                    uxy, h = unseen
+                    px, py = uxy[:, 0], uxy[:, 1]
+                else:  # an UnseenCells view
+                    px, py = unseen.within(-math.inf, math.inf, -math.inf, math.inf)
+                    h = unseen.grow_mm
             near = np.hypot(px, py) < layer.r_max_mm + 200.0
             px, py = px[near], py[near]
             s_ext = layer._contact(px, py, h, v, w, u, False)
