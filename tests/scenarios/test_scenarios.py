@@ -137,7 +137,7 @@ def test_fault_stops_the_wheels_in_the_promised_time_then_recovers(kind):
     from omnid.sim.simulator import Fault
 
     core = make_core()
-    t0, t1 = 5.0, 8.0  # driving at full speed from ~3 s
+    t0, t1 = 8.0, 11.0  # past the start's creep through the unseen: at full speed from ~6 s
     sim = Simulator(
         room(length_mm=9000.0),
         core,
@@ -145,13 +145,13 @@ def test_fault_stops_the_wheels_in_the_promised_time_then_recovers(kind):
         rider=forward_rider(30.0),
         faults=(Fault(kind, t0, t1),),  # type: ignore[arg-type]
     )
-    result = sim.run(12.0)
+    result = sim.run(15.0)
     assert result.contacts == []
-    assert result.max_speed_between(t0 - 1.0, t0) > 50.0  # it was driving
+    assert result.max_speed_between(t0 - 1.0, t0) > 140.0  # it was driving at full speed
     took = result.time_to_standstill(t0, STANDSTILL_MM_S)
     assert took <= _promised_s(kind, core), f"{kind}: {took:.2f} s"
     assert result.max_speed_between(t0 + took + 0.1, t1) < STANDSTILL_MM_S  # stays stopped
-    assert result.max_speed_between(t1, 12.0) > 50.0  # recovered: driving again
+    assert result.max_speed_between(t1, 15.0) > 50.0  # recovered: driving again
 
 
 def test_a_box_the_map_never_held_is_bumped_once_the_chair_stops_and_backs_away():
