@@ -12,12 +12,13 @@ import pytest
 from omnid.sim.suite import SCENARIOS, clutter, run_trial, way_clear
 
 
+@pytest.mark.parametrize(("kind", "seeds"), [("joystick", (0, 1, 2)), ("tilt", (0,))])
 @pytest.mark.slow(seconds=4)
-def test_reversing_into_the_unseen_never_touches_the_box():
-    """A box 300 mm behind the chair, never seen: reversing is refused, whatever the seed (the
-    head rider, who has no reverse, turns round: the turn beside an unseen wall below)."""
-    for seed in range(3):
-        r = run_trial(SCENARIOS["reversing into the unseen"]("joystick", seed))
+def test_reversing_into_the_unseen_never_touches_the_box(kind, seeds):
+    """A box 300 mm behind the chair, never seen: reversing is refused, whatever the seed; the
+    head rider, who has no reverse, turns round in place and its tail is refused the same way."""
+    for seed in seeds:
+        r = run_trial(SCENARIOS["reversing into the unseen"](kind, seed))
         assert r.contacts == 0 and r.falls == 0, seed
         assert r.refusals.get("unknown_stop", 0) > 0
         assert r.min_clearance_mm > 250.0  # it never moved towards it
