@@ -1,11 +1,12 @@
 """Closed-loop phantom check: the `best` matcher on captures of the scenario's partition.
 
 The scenario of the former CI test ``test_passes_a_passage_wider_than_the_chair`` (a partition
-across a 4 m room at x = 1800 mm with a centred 1300 mm gap; since stop 29 the demo story's wide
-passage and the 900 mm doorway stand for it in CI) stopped the chair for nothing when floor rows
-seen through the gap were paired two lattice steps off. This renders the simulator's
-installed rig (misaligned, calibrated on its floor capture) at poses along the chair's path
-and counts, over all frames, wrong pairs (not the two images of one dot) and matched points
+with a centred 1300 mm gap; since stop 29 the demo story's wide passage and the 900 mm doorway
+stand for it in CI) stopped the chair for nothing when floor rows seen through the gap were
+paired two lattice steps off. This tool puts the partition where that test first had it,
+x = 1800 mm across a 4 m room (the test later moved it to 1100 mm), renders it with the
+simulator's installed rig (misaligned, calibrated on its floor capture) at poses along the
+chair's path and counts, over all frames, wrong pairs (not the two images of one dot) and matched points
 more than 50 mm off their true position, nearer (phantom obstacles) or deeper (phantom
 drop-offs).
 
