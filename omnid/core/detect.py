@@ -842,7 +842,7 @@ def _detect_best(
         peak = centre[k] * spread2 / (sigma * sigma)  # the spot's own peak from the smoothed
         # Fitted on the subtracted image: near large, dense spots the local background
         # (a min filter) holds their light; each fit has its own plane for what is left.
-        fr, fc, _, fs = spotfit.fit_spots(
+        fr, fc, fpeak, fs = spotfit.fit_spots(
             sub, saturated, rows[k], cols[k], sigma, peak, start=(r[k], c[k]), free=free
         )
         # A fit that wandered off, or whose size ran to its bound (no spot of the image's
@@ -850,6 +850,10 @@ def _detect_best(
         moved = np.hypot(fr - r[k], fc - c[k]) <= 1.5
         moved &= fs < 0.999 * spotfit.window_half_px(sigma) / 2.0
         r[k[moved]], c[k[moved]] = fr[moved], fc[moved]
+        if sigma > _FIT_ALL_FROM_PX and len(k) == len(r):
+            fpk = np.where(moved, fpeak, peak)
+            fsg = np.where(moved, fs, sigma)
+            r, c = _asymmetric_light(sub, d, saturated, rows, cols, r, c, fpk, fsg, sigma, noise)
     if learned_shape and sigma > _FIT_ALL_FROM_PX:
         # Experimental (not the default; docs/benchmarks/detection.md): every dot refitted
         # with the profile learned from the image's isolated dots, jointly with its neighbours.
@@ -870,6 +874,125 @@ def _detect_best(
         k = np.flatnonzero(cut & ~pair & ~fixed)
         r[k], c[k] = _refine(d, top_rows[k], top_cols[k])
     return np.column_stack([r + r0, c + c0, centre.astype(np.float64)])
+
+
+#: Light beside a dot that is not point-symmetric about it (:func:`_asymmetric_light`) is
+#: another source where the residual's matched filter stands this many of its noise sigmas
+#: above its mirror image through the dot ...
+_ASYM_SNR = 6.0
+#: ... and this share of the dot's own matched-filtered peak (the spot model's own mismatch,
+#: a speckled halo's grains, scales with the dot).
+_ASYM_SHARE = 0.1
+
+
+def _asymmetric_light(
+    sub: NDArray[np.float32],
+    d: NDArray[np.float32],
+    saturated: NDArray[np.bool_] | None,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    peak: NDArray[np.float64],
+    spot_sigma: NDArray[np.float64],
+    sigma: float,
+    noise: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Refit the dots beside which light is left that no dot explains and that is not
+    point-symmetric about the dot (a ghost reflection, an undetected neighbour): the fit is
+    unbiased for any point-symmetric spot, so only such light moves a centre. The light is
+    found in the residual of the fitted dots' model (matched-filtered with the image's spot
+    size), at least one spot sigma from the dot and within its window, standing above the
+    residual at its mirror position through the dot by :data:`_ASYM_SNR` noise sigmas and
+    :data:`_ASYM_SHARE` of the dot; each such source is fitted as one more (free) spot with
+    the dots within reach of it (their neighbours held), and dropped: it is no dot.
+    Clipped tops and the pixels around them, where the model is only a bound, are not read.
+
+    ``r``, ``c``, ``peak``, ``spot_sigma``: the fitted dots (px, gray levels of the profile's
+    peak, px); ``d``: the background-free image the residual is taken of, ``sub`` the one
+    the dots were fitted on."""
+    h_img, w_img = d.shape
+    half = spotfit.window_half_px(sigma)
+    size = 2 * half + 1
+    r0 = np.rint(r).astype(np.intp) - half
+    c0 = np.rint(c).astype(np.intp) - half
+    gr, _, _ = spotfit.window_gaussian((r0 - r)[:, None], size, spot_sigma[:, None], False)
+    gc, _, _ = spotfit.window_gaussian((c0 - c)[:, None], size, spot_sigma[:, None], False)
+    mass = peak * 2.0 * math.pi * spot_sigma * spot_sigma
+    tiles = mass[:, None, None] * gr[:, :, None] * gc[:, None, :]
+    wide = w_img + 2 * size
+    off = np.arange(size)
+    flat = ((r0 + size)[:, None, None] + off[None, :, None]) * wide + (
+        (c0 + size)[:, None, None] + off[None, None, :]
+    )
+    model = np.bincount(flat.ravel(), tiles.ravel(), (h_img + 2 * size) * wide)
+    model = model.reshape(h_img + 2 * size, wide)
+    res = d - model[size : size + h_img, size : size + w_img].astype(np.float32)
+    if saturated is not None and saturated.any():
+        # (a clipped top says nothing about the shape, nor does the model's edge around it)
+        grow = 2 * math.ceil(sigma) + 1
+        near_clip = cv2.dilate(saturated.view(np.uint8), np.ones((grow, grow), np.uint8))
+        res[near_clip.view(bool)] = 0.0
+    res_s = cv2.GaussianBlur(res, (0, 0), sigma)
+    # white noise through a unit-peak Gaussian of σ: noise / (2 √π σ); √2 for the difference
+    # of two such values
+    level = _ASYM_SNR * math.sqrt(2.0) * noise / (2.0 * math.sqrt(math.pi) * sigma)
+    # residual maxima (3x3) above the level
+    dil = cv2.dilate(res_s, np.ones((3, 3), np.uint8))
+    mr, mc = np.nonzero((res_s >= dil) & (res_s > level))
+    if len(mr) == 0:
+        return r, c
+    # the dot each maximum lies beside: nearest within its window, ≥ 1 spot sigma away
+    pi, pj = spotfit.near_pairs(
+        np.concatenate([mr.astype(np.float64), r]),
+        np.concatenate([mc.astype(np.float64), c]),
+        float(half),
+        sort=False,
+    )
+    m = len(mr)
+    sel = (pi < m) & (pj >= m)
+    pi, pj = pi[sel], pj[sel] - m
+    if len(pi) == 0:
+        return r, c
+    dr, dc = mr[pi] - r[pj], mc[pi] - c[pj]
+    dist = np.hypot(dr, dc)
+    ok = dist >= sigma
+    # its mirror through the dot (sub-pixel: a residual ring's slope would pass for asymmetry)
+    mirror = _bilinear(res_s, r[pj] - dr, c[pj] - dc)
+    dot_s = peak[pj] * spot_sigma[pj] ** 2 / (spot_sigma[pj] ** 2 + sigma * sigma)
+    ok &= res_s[mr[pi], mc[pi]] - mirror > np.maximum(level, _ASYM_SHARE * dot_s)
+    if not ok.any():
+        return r, c
+    g = np.unique(pi[ok])
+    gr_, gc_ = mr[g].astype(np.float64), mc[g].astype(np.float64)
+    # the dots within reach of a source: refitted with it; their neighbours held
+    reach = 2.0 * half
+    near = (np.abs(r[:, None] - gr_[None, :]) <= reach) & (
+        np.abs(c[:, None] - gc_[None, :]) <= reach
+    )
+    free_dots: NDArray[np.bool_] = np.asarray(near.any(axis=1))
+    fi = np.flatnonzero(free_dots)
+    # their neighbours, held where they are: their light taken out of the refitted windows
+    held = (np.abs(r[:, None] - r[None, fi]) <= reach) & (np.abs(c[:, None] - c[None, fi]) <= reach)
+    k = np.flatnonzero(free_dots | held.any(axis=1))
+    g_peak = res_s[mr[g], mc[g]] * 2.0  # (the residual's smoothed peak of a spot of σ)
+    free: NDArray[np.bool_] = np.concatenate([free_dots[k], np.ones(len(g), dtype=bool)])
+    fr, fc, _, fs = spotfit.fit_spots(
+        sub,
+        saturated,
+        np.concatenate([rows[k], mr[g]]),
+        np.concatenate([cols[k], mc[g]]),
+        sigma,
+        np.concatenate([peak[k], g_peak]),
+        start=(np.concatenate([r[k], gr_]), np.concatenate([c[k], gc_])),
+        free=free,
+    )
+    nk = len(k)
+    fr, fc, fs = fr[:nk], fc[:nk], fs[:nk]
+    moved = free[:nk] & (np.hypot(fr - r[k], fc - c[k]) <= 1.5) & (fs < 0.999 * half / 2.0)
+    r, c = r.copy(), c.copy()
+    r[k[moved]], c[k[moved]] = fr[moved], fc[moved]
+    return r, c
 
 
 def _pairs_near(
