@@ -154,6 +154,9 @@ def write_files_atomic(files: list[tuple[str | Path, bytes]]) -> None:
     import os
     import tempfile
 
+    for path, _ in files:  # the one rename that fails on a writable place: onto a folder
+        if Path(path).is_dir():
+            raise InputError(f"{path}: cannot write (Is a directory)")
     temps: list[tuple[str, Path]] = []
     try:
         for path, data in files:
