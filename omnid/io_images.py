@@ -120,3 +120,63 @@ def write_png(path: str | Path, image: NDArray[np.uint8]) -> None:
     if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
         raise InputError(f"{path}: PNG encoding failed")
     write_bytes_atomic(path, buf.tobytes())
+
+
+def refuse_clobbering(outputs: dict[str, str | None], inputs: dict[str, str]) -> None:
+    """Raise :class:`InputError` when an output path (option name → path) is one of the inputs
+    or another output: writing it would destroy a capture or the calibration the command just
+    read (``--out floor_mask1.png``), or one output would silently replace the other."""
+    import os
+
+    def same(a: str, b: str) -> bool:
+        try:
+            return os.path.samefile(a, b)
+        except OSError:  # one of them does not exist (yet): compare the names
+            return os.path.abspath(a) == os.path.abspath(b)
+
+    seen: dict[str, str] = dict(inputs)
+    for option, path in outputs.items():
+        if not path:
+            continue
+        for other, other_path in seen.items():
+            if same(path, other_path):
+                raise InputError(
+                    f"{option} {path} is also {other}: writing it would replace that file; "
+                    "give the output a path of its own"
+                )
+        seen[option] = path
+
+
+def write_files_atomic(files: list[tuple[str | Path, bytes]]) -> None:
+    """Write several files all or none: every temporary file is made and filled first (an
+    unwritable place fails before any file is touched), then all are renamed into place. An
+    error raises :class:`InputError` naming the path, as :func:`write_bytes_atomic` does."""
+    import os
+    import tempfile
+
+    for path, _ in files:  # the one rename that fails on a writable place: onto a folder
+        if Path(path).is_dir():
+            raise InputError(f"{path}: cannot write (Is a directory)")
+    temps: list[tuple[str, Path]] = []
+    try:
+        for path, data in files:
+            p = Path(path)
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent or ".")
+            except OSError as exc:
+                raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
+            temps.append((tmp, p))
+            try:
+                os.fchmod(fd, 0o666 & ~current_umask())
+                with os.fdopen(fd, "wb") as f:
+                    f.write(data)
+            except OSError as exc:
+                raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
+        for tmp, p in temps:
+            try:
+                os.replace(tmp, p)
+            except OSError as exc:
+                raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
+    finally:
+        for tmp, _ in temps:
+            Path(tmp).unlink(missing_ok=True)

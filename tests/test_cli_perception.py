@@ -272,3 +272,72 @@ def test_old_calibration_file_says_recalibrate(calibrated, tmp_path, capsys) -> 
     old.write_text(calib.read_text().replace("format_version: 2", "format_version: 1"))
     code = main(["perceive", "--calib", str(old), *scene_args(folder)])
     assert "recalibrate" in _one_line_refusal(capsys, code)
+
+
+def test_perceive_writes_neither_output_when_one_cannot_be_written(calibrated, tmp_path, capsys):
+    # --ply writable, --png in a folder that does not exist: the refusal leaves no PLY behind
+    folder, calib = calibrated
+    ply = tmp_path / "cloud.ply"
+    png = tmp_path / "missing" / "top.png"
+    code = main(
+        [
+            "perceive",
+            "--calib",
+            str(calib),
+            *scene_args(folder),
+            "--ply",
+            str(ply),
+            "--png",
+            str(png),
+        ]
+    )
+    assert str(png) in _one_line_refusal(capsys, code, png)
+    assert not ply.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no temporary file left either
+
+
+def test_perceive_refuses_an_output_that_is_one_of_its_inputs(calibrated, tmp_path, capsys):
+    folder, calib = calibrated
+    own = tmp_path / "calib.yaml"
+    own.write_bytes(calib.read_bytes())
+    before = own.read_bytes()
+    code = main(["perceive", "--calib", str(own), *scene_args(folder), "--png", str(own)])
+    assert "--calib" in _one_line_refusal(capsys, code)
+    assert own.read_bytes() == before  # the calibration is not replaced by a picture
+    same = tmp_path / "both.out"
+    code = main(
+        [
+            "perceive",
+            "--calib",
+            str(calib),
+            *scene_args(folder),
+            "--ply",
+            str(same),
+            "--png",
+            str(same),
+        ]
+    )
+    assert "--ply" in _one_line_refusal(capsys, code, same)
+
+
+def test_calibrate_refuses_to_write_over_its_own_capture(calibrated, tmp_path, capsys):
+    folder, _ = calibrated
+    args = scene_args(folder, "floor")
+    mask1 = tmp_path / "mask1.png"
+    mask1.write_bytes((folder / "floor_mask1.png").read_bytes())
+    before = mask1.read_bytes()
+    args[args.index("--mask1") + 1] = str(mask1)
+    code = main(
+        [
+            "calibrate",
+            *args,
+            "--floor-depth-mm",
+            "1100",
+            "--out",
+            str(mask1),
+            "--extra",
+            str(folder / "extra_box"),
+        ]
+    )
+    assert "--mask1" in _one_line_refusal(capsys, code)
+    assert mask1.read_bytes() == before  # the installer's capture is still a picture

@@ -228,3 +228,15 @@ def test_experiment_table74(capsys: pytest.CaptureFixture[str]) -> None:
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert float(cells[4].split()[0]) < 0.5  # mean X error of best on the plane, %
     assert float(cells[7]) >= 95.0 and float(cells[8]) < 0.5  # matched %, wrong %
+
+
+def test_scene_that_cannot_write_its_truth_writes_no_capture(tmp_path: Path, capsys) -> None:
+    # truth.json cannot be written (a folder is in its place): the eight PNGs must not be left
+    # behind without it, and the refusal is one line with a non-zero exit
+    out = tmp_path / "scene"
+    (out / "truth.json").mkdir(parents=True)
+    code = main(["scene", "floor", "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code != 0
+    assert "truth.json" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["truth.json"]

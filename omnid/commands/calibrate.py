@@ -44,8 +44,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from omnid.core.calibration import calibrate_from_capture
-    from omnid.io_images import read_capture
+    from omnid.io_images import read_capture, refuse_clobbering
 
+    inputs = {f"--{n}": getattr(args, n) for n in NAMES}
+    for k, folder in enumerate(args.extra, 1):
+        inputs |= {f"--extra #{k} {n}.png": str(Path(folder) / f"{n}.png") for n in NAMES}
+    refuse_clobbering({"--out": args.out}, inputs)
     capture = read_capture(args.mask1, args.base1, args.mask2, args.base2)
     extras = []
     for folder in args.extra:

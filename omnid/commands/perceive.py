@@ -86,7 +86,12 @@ def run(args: argparse.Namespace) -> int:
     from omnid.core.pipeline import PerceptionSettings, perceive_detailed
     from omnid.core.types import PointClass
     from omnid.errors import InputError
-    from omnid.io_images import read_capture, write_bytes_atomic, write_png
+    from omnid.io_images import read_capture, refuse_clobbering, write_files_atomic
+
+    refuse_clobbering(
+        {"--ply": args.ply, "--png": args.png},
+        {f"--{n}": getattr(args, n) for n in ("calib", "mask1", "base1", "mask2", "base2")},
+    )
 
     if not (args.half_width_mm > 0 and math.isfinite(args.half_width_mm)):
         raise InputError(f"--half-width-mm must be a positive number, got {args.half_width_mm}")
@@ -110,11 +115,14 @@ def run(args: argparse.Namespace) -> int:
             f"{health.describe()}: the rig has moved since calibration, or the captures are "
             f"of another rig; recalibrate ({args.calib})"
         )
+    outputs: list[tuple[str, bytes]] = []  # written together below: both or neither
     if args.ply:
         from omnid.core.export import ply_bytes
 
-        write_bytes_atomic(args.ply, ply_bytes(cloud))
+        outputs.append((args.ply, ply_bytes(cloud)))
     if args.png:
+        import cv2
+
         from omnid.core.export import render_topdown, with_legend
         from omnid.core.freespace import FreeSpaceMap
 
@@ -122,7 +130,11 @@ def run(args: argparse.Namespace) -> int:
         fmap.update(cloud, args.rig_x_offset_mm)
         top = render_topdown(fmap, cloud, rig_x_offset_mm=args.rig_x_offset_mm)
         title = f"omnid perceive: {len(cloud)} points, forward up, chair's left on the left"
-        write_png(args.png, with_legend(top, title))
+        ok, buf = cv2.imencode(".png", with_legend(top, title))
+        if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
+            raise InputError(f"{args.png}: PNG encoding failed")
+        outputs.append((args.png, buf.tobytes()))
+    write_files_atomic(outputs)
     counts = {c.label: int((cloud.classes == c).sum()) for c in PointClass}
     nearest = {
         c.label: nearest_ahead_mm(cloud, int(c), args.half_width_mm)

@@ -149,16 +149,24 @@ def _dots(hits: Any, rays: Any, floor_depth_mm: float) -> list[dict[str, Any]]:
     ]
 
 
-def _write_capture(folder: Path, capture: Any, prefix: str = "") -> None:
-    from omnid.sim.installation import write_capture
+def _capture_files(folder: Path, capture: Any, prefix: str = "") -> list[tuple[Path, bytes]]:
+    """The four PNGs of ``capture`` as (path, encoded bytes), written later with the rest."""
+    import cv2
 
-    write_capture(capture, folder, prefix)
+    from omnid.errors import InputError
+
+    files = []
+    for name in ("mask1", "base1", "mask2", "base2"):
+        path = folder / f"{prefix}{name}.png"
+        ok, buf = cv2.imencode(".png", getattr(capture, name))
+        if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
+            raise InputError(f"{path}: PNG encoding failed")
+        files.append((path, buf.tobytes()))
+    return files
 
 
-def _write_json(path: Path, doc: dict[str, Any]) -> None:
-    from omnid.io_images import write_bytes_atomic
-
-    write_bytes_atomic(path, (json.dumps(doc, indent=1) + "\n").encode())
+def _json_file(path: Path, doc: dict[str, Any]) -> tuple[Path, bytes]:
+    return path, (json.dumps(doc, indent=1) + "\n").encode()
 
 
 def _mkdir(folder: Path) -> None:
@@ -207,12 +215,15 @@ def run(args: argparse.Namespace) -> int:
     )
     rays = laser.rays()
     out = Path(args.out)
-    _mkdir(out)
+    # everything is rendered first and written at the end, all files or none (a refusal
+    # half-way must not leave a capture without its truth.json, or one of another seed)
+    files: list[tuple[Path, bytes]] = []
+    folders = [out]
 
     floor = floor_hits(rig, laser, scene.mount)
     hits = scene_hits(scene, rig, laser)
-    _write_capture(out, render_hits(rig, floor, args.seed, options), "floor_")
-    _write_capture(out, render_hits(rig, hits, args.seed + 1, options))
+    files += _capture_files(out, render_hits(rig, floor, args.seed, options), "floor_")
+    files += _capture_files(out, render_hits(rig, hits, args.seed + 1, options))
     common = {
         "floor_depth_mm": H,
         "baseline_mm": rig.baseline_mm,
@@ -233,8 +244,8 @@ def run(args: argparse.Namespace) -> int:
         ex = extra_scene(name, specs.stream(args.seed, "extra", k), scene.mount)
         ex_hits = scene_hits(ex, rig, laser)
         folder = out / f"extra{k}"
-        _mkdir(folder)
-        _write_capture(folder, render_hits(rig, ex_hits, args.seed + 1 + k, options))
+        folders.append(folder)
+        files += _capture_files(folder, render_hits(rig, ex_hits, args.seed + 1 + k, options))
         doc = {
             "scene": ex.name,
             "description": ex.description,
@@ -243,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
             "off_floor_both": int((ex_hits.visible & (ex_hits.truth != 0)).sum()),
             "dots": _dots(ex_hits, rays, H),
         }
-        _write_json(folder / "truth.json", doc)
+        files.append(_json_file(folder / "truth.json", doc))
         written.append(f"{folder}/ ({ex.description})")
     truth = {
         "scene": scene.name,
@@ -254,7 +265,12 @@ def run(args: argparse.Namespace) -> int:
         "dots": _dots(hits, rays, H),
         "floor_dots": _dots(floor, rays, H),
     }
-    _write_json(out / "truth.json", truth)
+    files.append(_json_file(out / "truth.json", truth))
+    from omnid.io_images import write_files_atomic
+
+    for folder in folders:
+        _mkdir(folder)
+    write_files_atomic(files)
     print(
         f"wrote {out}/floor_{{mask,base}}{{1,2}}.png, {out}/{{mask,base}}{{1,2}}.png and "
         f"{out}/truth.json: {scene.description}, {int(hits.visible.sum())} dots seen by both "
