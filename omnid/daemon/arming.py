@@ -14,7 +14,10 @@ Two rules, both applied by :class:`~omnid.daemon.core.ControlCore` every cycle:
   been seen live and at rest once since the daemon started: a head still tilted, or a stick
   still pushed, when a restarted daemon comes up (systemd restarts one whose loop died) does not
   set the chair moving. (With the shipped neutral-pose calibration a tilted head cannot even
-  calibrate.)
+  calibrate.) The same holds after a reconnect: a continuous source that was lost (unplugged,
+  silent, stale, invalid) must be seen live and at rest again before it drives, whether or not
+  it was driving when it went — a stick replugged already pushed, a head back already tilted,
+  does not set the chair moving.
 - **A new live demand after a stall.** When the control loop has not run for longer than two
   command periods (the event loop stalled, the machine froze), the first command is zero
   (:meth:`ControlCore.step`) and motion needs input that arrived after the stall: a demand
@@ -47,6 +50,7 @@ class Arming:
         self._last_driver: str | None = None  # the source of the previous cycle's motion
         self._throttle = LogThrottle(log, log_interval_s)
         self.at_rest_seen: set[str] = set()  # continuous sources seen at rest since start
+        self._relost: set[str] = set()  # sources lost since: the calibration no longer counts
 
     def on_fault(self, reason: str, now_s: float) -> None:
         """A fault is active in this cycle (called every cycle while it lasts)."""
@@ -60,14 +64,23 @@ class Arming:
         self.cleared_s = None
         self._last_driver = None
 
+    def on_lost(self, name: str) -> None:
+        """Continuous source ``name`` was live and is not now: it must be seen at rest again
+        before it drives (the start-up rule, after a reconnect)."""
+        if name in _CONTINUOUS:
+            self.at_rest_seen.discard(name)
+            self._relost.add(name)
+
     def observe(self, mux: RiderMux, now_s: float) -> None:
         """Every cycle, whatever else happens: note the sources seen at rest (start-up rule)."""
         if len(self.at_rest_seen) < len(_CONTINUOUS):
-            if mux.tilt.calibrated:  # the neutral-pose calibration held the head still
+            if mux.tilt.calibrated and "tilt" not in self._relost:
+                # the neutral-pose calibration held the head still (at start, not after a loss)
                 self.at_rest_seen.add("tilt")
             for name in _CONTINUOUS:
                 if name not in self.at_rest_seen and mux.released(name, now_s, -math.inf):
                     self.at_rest_seen.add(name)
+                    self._relost.discard(name)
 
     def on_stall(self, now_s: float) -> None:
         """The control loop did not run for too long: motion needs input newer than now."""

@@ -518,6 +518,7 @@ class ControlCore:
             return cmd
         for name in lost:
             self.arming.on_fault(f"{name}_lost", now_s)
+            self.arming.on_lost(name)  # seen at rest again before it drives
         if (
             demand.stop
             and demand.source != "daemon"

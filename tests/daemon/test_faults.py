@@ -8,7 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from daemon_helpers import FreeFloor, Status, Tilt, arm
+from daemon_helpers import FreeFloor, Status, Stick, Tilt, arm
 
 from omnid.core.kinematics import MM_PER_CLOCK
 from omnid.daemon.config import OmnidConfig
@@ -260,5 +260,67 @@ def test_the_neutral_pose_calibration_counts_as_the_head_seen_at_rest():
     r.head = NEUTRAL
     r.cycles(0.22)  # the calibration's last reading; the next one is already tilted
     assert r.core.mux.tilt.calibrated
+    r.head = FORWARD
+    assert moving(r.cycles(0.6)[-1])
+
+
+def test_a_stick_replugged_while_deflected_does_not_drive_until_centred():
+    """The joystick is unplugged while idle (nothing driving) and comes back with the stick
+    already pushed (a hand resting on it, a bag hooked on it): the chair must not lurch. The
+    start-up rule (seen at rest before it drives) holds across a reconnect too."""
+    d = OmnidConfig()
+    cfg = replace(
+        d,
+        rider=RiderSettings(
+            tilt=TiltSettings(enabled=False), joystick=JoystickSettings(enabled=True)
+        ),
+    )
+    core = ControlCore(cfg, world_map=FreeFloor(cfg.freespace.grid))
+    arm(core)
+    t = 0.0
+
+    def cycles(seconds: float, stick: tuple[float, float] | None) -> list:
+        nonlocal t
+        out = []
+        for _ in range(round(seconds / DT)):
+            t = round(t + DT, 6)
+            if stick is not None:
+                core.on_joystick(Stick(*stick, t))
+            core.on_status(Status(0, 0, 0, True, 0, t))
+            core.perception_time_s = t
+            out.append(core.step(t))
+        return out
+
+    assert not any(moving(c) for c in cycles(0.5, (0.0, 0.0)))  # live, centred
+    assert moving(cycles(0.5, (0.8, 0.0))[-1])  # it drives when pushed
+    cycles(0.5, (0.0, 0.0))  # released: idle
+    core.on_input_lost("joystick", t)  # unplugged (hidapi read error)
+    assert not any(moving(c) for c in cycles(0.5, None))
+    back = cycles(1.0, (0.8, 0.0))  # replugged, the stick already deflected
+    assert not any(moving(c) for c in back)
+    assert core.last_report.demand.reason == "rearm_wait"
+    cycles(0.1, (0.0, 0.0))  # centred once
+    assert moving(cycles(0.5, (0.8, 0.0))[-1])
+
+
+def test_a_tilt_sensor_back_with_the_head_tilted_does_not_drive_until_at_rest():
+    """The tilt sensor is lost while the head is neutral and comes back with the head held
+    forward (the rider slumped while it was gone): not a fresh command, it must not drive
+    before the head has been seen at rest again."""
+    r = Run(make_core())
+    r.head = NEUTRAL
+    r.cycles(0.5)
+    r.head = FORWARD
+    assert moving(r.cycles(0.6)[-1])  # the head drives
+    r.head = NEUTRAL
+    r.cycles(0.6)  # idle again
+    r.tilt = False
+    r.core.on_input_lost("tilt", r.t)
+    assert not any(moving(c) for c in r.cycles(0.5))
+    r.tilt = True
+    r.head = FORWARD
+    assert not any(moving(c) for c in r.cycles(1.5))
+    r.head = NEUTRAL
+    r.cycles(0.1)
     r.head = FORWARD
     assert moving(r.cycles(0.6)[-1])
