@@ -7,6 +7,7 @@ so does a capture whose four files differ in size or do not fit the calibration.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -90,36 +91,24 @@ def write_bytes_atomic(path: str | Path, data: bytes, fsync: bool = False) -> No
     the permissions a plain ``open(path, "w")`` would (0666 less the umask), not the temporary
     file's 0600. ``fsync``: on disk before the rename. An unwritable place raises
     :class:`InputError` naming ``path``, never the temporary file."""
-    import os
-    import tempfile
-
-    p = Path(path)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent or ".")
-    except OSError as exc:
-        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
-    try:
-        os.fchmod(fd, 0o666 & ~current_umask())
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            if fsync:
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(tmp, p)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
+    write_files_atomic([(path, data)], fsync)
 
 
-def write_png(path: str | Path, image: NDArray[np.uint8]) -> None:
-    """Encode an 8-bit gray or BGR image as PNG and write it atomically (see
-    :func:`write_bytes_atomic`)."""
+def png_bytes(path: str | Path, image: NDArray[np.uint8]) -> bytes:
+    """An 8-bit gray or BGR image encoded as PNG, to be written to ``path`` (named in the
+    error)."""
     import cv2
 
     ok, buf = cv2.imencode(".png", image)
     if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
         raise InputError(f"{path}: PNG encoding failed")
-    write_bytes_atomic(path, buf.tobytes())
+    return bytes(buf.tobytes())
+
+
+def write_png(path: str | Path, image: NDArray[np.uint8]) -> None:
+    """Encode an 8-bit gray or BGR image as PNG and write it atomically (see
+    :func:`write_bytes_atomic`)."""
+    write_bytes_atomic(path, png_bytes(path, image))
 
 
 def refuse_clobbering(outputs: dict[str, str | None], inputs: dict[str, str]) -> None:
@@ -147,10 +136,11 @@ def refuse_clobbering(outputs: dict[str, str | None], inputs: dict[str, str]) ->
         seen[option] = path
 
 
-def write_files_atomic(files: list[tuple[str | Path, bytes]]) -> None:
+def write_files_atomic(files: Sequence[tuple[str | Path, bytes]], fsync: bool = False) -> None:
     """Write several files all or none: every temporary file is made and filled first (an
     unwritable place fails before any file is touched), then all are renamed into place. An
-    error raises :class:`InputError` naming the path, as :func:`write_bytes_atomic` does."""
+    error raises :class:`InputError` naming the path, never a temporary file. The files get
+    the permissions a plain ``open(path, "w")`` would; ``fsync``: on disk before the renames."""
     import os
     import tempfile
 
@@ -170,6 +160,9 @@ def write_files_atomic(files: list[tuple[str | Path, bytes]]) -> None:
                 os.fchmod(fd, 0o666 & ~current_umask())
                 with os.fdopen(fd, "wb") as f:
                     f.write(data)
+                    if fsync:
+                        f.flush()
+                        os.fsync(f.fileno())
             except OSError as exc:
                 raise InputError(f"{p}: cannot write ({exc.strerror or exc})") from None
         for tmp, p in temps:

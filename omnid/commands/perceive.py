@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     from omnid.core.pipeline import PerceptionSettings, perceive_detailed
     from omnid.core.types import PointClass
     from omnid.errors import InputError
-    from omnid.io_images import read_capture, refuse_clobbering, write_files_atomic
+    from omnid.io_images import png_bytes, read_capture, refuse_clobbering, write_files_atomic
 
     refuse_clobbering(
         {"--ply": args.ply, "--png": args.png},
@@ -121,8 +121,6 @@ def run(args: argparse.Namespace) -> int:
 
         outputs.append((args.ply, ply_bytes(cloud)))
     if args.png:
-        import cv2
-
         from omnid.core.export import render_topdown, with_legend
         from omnid.core.freespace import FreeSpaceMap
 
@@ -130,10 +128,7 @@ def run(args: argparse.Namespace) -> int:
         fmap.update(cloud, args.rig_x_offset_mm)
         top = render_topdown(fmap, cloud, rig_x_offset_mm=args.rig_x_offset_mm)
         title = f"omnid perceive: {len(cloud)} points, forward up, chair's left on the left"
-        ok, buf = cv2.imencode(".png", with_legend(top, title))
-        if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
-            raise InputError(f"{args.png}: PNG encoding failed")
-        outputs.append((args.png, buf.tobytes()))
+        outputs.append((args.png, png_bytes(args.png, with_legend(top, title))))
     write_files_atomic(outputs)
     counts = {c.label: int((cloud.classes == c).sum()) for c in PointClass}
     nearest = {

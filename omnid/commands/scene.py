@@ -151,18 +151,10 @@ def _dots(hits: Any, rays: Any, floor_depth_mm: float) -> list[dict[str, Any]]:
 
 def _capture_files(folder: Path, capture: Any, prefix: str = "") -> list[tuple[Path, bytes]]:
     """The four PNGs of ``capture`` as (path, encoded bytes), written later with the rest."""
-    import cv2
+    from omnid.io_images import png_bytes
 
-    from omnid.errors import InputError
-
-    files = []
-    for name in ("mask1", "base1", "mask2", "base2"):
-        path = folder / f"{prefix}{name}.png"
-        ok, buf = cv2.imencode(".png", getattr(capture, name))
-        if not ok:  # pragma: no cover - cv2 fails only on unusable arrays
-            raise InputError(f"{path}: PNG encoding failed")
-        files.append((path, buf.tobytes()))
-    return files
+    paths = [folder / f"{prefix}{name}.png" for name in ("mask1", "base1", "mask2", "base2")]
+    return [(p, png_bytes(p, getattr(capture, p.stem.removeprefix(prefix)))) for p in paths]
 
 
 def _json_file(path: Path, doc: dict[str, Any]) -> tuple[Path, bytes]:
