@@ -490,6 +490,8 @@ class ControlCore:
                 "rider input",
                 now_s,
             )
+        for name in lost:  # even in a cycle that stops for another fault (a silent unit):
+            self.arming.on_lost(name)  # a reconnect must be seen at rest before it drives
         st = self.status
         if (
             st is None
@@ -518,7 +520,6 @@ class ControlCore:
             return cmd
         for name in lost:
             self.arming.on_fault(f"{name}_lost", now_s)
-            self.arming.on_lost(name)  # seen at rest again before it drives
         if (
             demand.stop
             and demand.source != "daemon"
