@@ -230,8 +230,10 @@ class ControlCore:
     def on_input_lost(self, source: str, now_s: float) -> None:
         """The device of rider source ``source`` says it is gone (port lost, readings stale) at
         monotonic ``now_s``: the source is stale from now (an input of its own, so that a
-        recording replays it)."""
+        recording replays it). Back, it drives only once seen at rest, even when the loss falls in
+        a loop stall (which otherwise excuses a source gone quiet)."""
         self.mux.on_lost(source)
+        self.arming.on_lost(source)
 
     def on_status(self, status: StatusSample) -> None:
         """A control-unit reply: odometry, the map's motion, the wheel speed estimate."""

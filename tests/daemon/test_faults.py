@@ -156,6 +156,26 @@ def test_after_a_stall_the_first_command_is_zero_and_motion_needs_newer_input():
     assert moving(r.cycles(0.6)[-1])
 
 
+def test_a_sensor_that_says_it_is_gone_during_a_stall_must_rest_before_it_drives():
+    """A stall excuses a source that merely went quiet (nobody read it); one whose device said
+    it was gone (unplugged) during the stall is a reconnect: back with the head still forward it
+    must first be seen at rest."""
+    core = make_core()
+    r = Run(core)
+    r.head = FORWARD
+    assert moving(r.cycles(1.0)[-1])
+    core.on_input_lost("tilt", round(r.t + 0.2, 6))  # logged while the loop was stuck
+    r.t = round(r.t + 0.5, 6)
+    core.on_status(r.chair.status(r.t))
+    core.perception_time_s = r.t
+    assert not moving(core.step(r.t))
+    assert not any(moving(c) for c in r.cycles(1.0))  # the head still forward: refused
+    r.head = NEUTRAL
+    r.cycles(0.1)
+    r.head = FORWARD
+    assert moving(r.cycles(0.6)[-1])
+
+
 def test_a_map_is_used_for_a_bounded_travel_not_only_a_bounded_age():
     core = make_core(perception_timeout_s=5.0, perception_max_travel_mm=200.0)
     r = Run(core)
