@@ -147,3 +147,29 @@ def test_emulator_removes_its_link_when_terminated(tmp_path) -> None:
     while link.is_symlink() and time.monotonic() < deadline:
         time.sleep(0.01)
     assert not link.is_symlink() and not os.path.lexists(link)
+
+
+@pytest.mark.parametrize(
+    "argv, option",
+    [
+        (["perceive", "--rig-x-offset-mm", "nan"], "--rig-x-offset-mm"),
+        (["perceive", "--half-width-mm", "-5"], "--half-width-mm"),
+        (["calibrate", "--floor-depth-mm", "inf"], "--floor-depth-mm"),
+        (["calibrate", "--floor-depth-mm", "400", "--baseline-mm", "0"], "--baseline-mm"),
+        (["simulate", "--duration-s", "nan"], "--duration-s"),
+        (["demo", "--duration-s", "-1"], "--duration-s"),
+        (["bench", "--duration-s", "nan"], "--duration-s"),
+        (["teleop", "--reply-timeout-s", "0"], "--reply-timeout-s"),
+        (["experiment", "table72", "--grid-step-mm", "nan"], "--grid-step-mm"),
+    ],
+)
+def test_a_number_that_is_no_number_is_refused_before_anything_runs(argv, option, capsys):
+    """``nan`` passes ``float()`` and every comparison's negation: without the parser's check
+    perceive drew its map at a NaN offset and bench ran 0 s and reported success."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]  # after argparse's usage: the one line that says why
+    assert "error:" in last and option in last

@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from omnid.commands._args import positive_float
+
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
@@ -25,7 +27,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (0)")
     p.add_argument("--dir", metavar="DIR", help="working folder (default: a new temporary one)")
     p.add_argument(
-        "--duration-s", type=float, default=None, help="stop by itself after this long (tests)"
+        "--duration-s",
+        type=positive_float,
+        default=None,
+        help="stop by itself after this long (tests)",
     )
     p.add_argument("--record", metavar="FILE.mcap", help="the daemon records (omnid run --record)")
     p.add_argument(

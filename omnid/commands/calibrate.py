@@ -11,6 +11,8 @@ import json
 import logging
 from pathlib import Path
 
+from omnid.commands._args import positive_float
+
 log = logging.getLogger("omnid.calibrate")
 
 NAMES = ("mask1", "base1", "mask2", "base2")
@@ -26,8 +28,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     for name in NAMES:
         p.add_argument(f"--{name}", required=True, metavar="PNG", help=f"{name} image")
-    p.add_argument("--floor-depth-mm", type=float, required=True, help="floor depth H, mm")
-    p.add_argument("--baseline-mm", type=float, default=200.0, help="baseline D, mm")
+    p.add_argument("--floor-depth-mm", type=positive_float, required=True, help="floor depth H, mm")
+    p.add_argument("--baseline-mm", type=positive_float, default=200.0, help="baseline D, mm")
     p.add_argument("--out", required=True, metavar="CALIB.yaml", help="calibration file")
     p.add_argument(
         "--extra",

@@ -13,13 +13,12 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from omnid.commands._args import positive_float
+
 
 def _table72(args: argparse.Namespace) -> int:
-    from omnid.errors import InputError
     from omnid.experiments import table72
 
-    if not args.grid_step_mm > 0:
-        raise InputError(f"--grid-step-mm must be positive, got {args.grid_step_mm}")
     if args.variant == "pixels":
         result = table72.run_pixels(seed=args.seed, grid_step_mm=args.grid_step_mm)
         text = table72.format_pixels(result)
@@ -69,7 +68,10 @@ def register(subparsers: Any) -> None:
     t72.add_argument("--variant", choices=["pixels", "detected"], default="pixels")
     t72.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     t72.add_argument(
-        "--grid-step-mm", type=float, default=100.0, help="grid spacing on each plane (default 100)"
+        "--grid-step-mm",
+        type=positive_float,
+        default=100.0,
+        help="grid spacing on each plane (default 100)",
     )
     t72.set_defaults(func=_table72)
     t74 = experiments.add_parser(

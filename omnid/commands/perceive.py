@@ -17,6 +17,8 @@ import json
 import math
 from typing import TYPE_CHECKING
 
+from omnid.commands._args import finite_float, positive_float
+
 if TYPE_CHECKING:
     from omnid.core.types import PointCloud
 
@@ -49,13 +51,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--half-width-mm",
-        type=float,
+        type=positive_float,
         default=350.0,
         help="half width of the corridor ahead in which the nearest obstacle is sought (350)",
     )
     p.add_argument(
         "--rig-x-offset-mm",
-        type=float,
+        type=finite_float,
         default=300.0,
         help="how far the vision rig sits ahead of the wheel axle, for --png (300)",
     )
@@ -93,8 +95,6 @@ def run(args: argparse.Namespace) -> int:
         {f"--{n}": getattr(args, n) for n in ("calib", "mask1", "base1", "mask2", "base2")},
     )
 
-    if not (args.half_width_mm > 0 and math.isfinite(args.half_width_mm)):
-        raise InputError(f"--half-width-mm must be a positive number, got {args.half_width_mm}")
     calib = Calibration.load(args.calib)
     capture = read_capture(
         args.mask1, args.base1, args.mask2, args.base2, calib.rig.cam1.image_shape

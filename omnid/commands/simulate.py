@@ -17,6 +17,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from omnid.commands._args import positive_float
+
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
@@ -61,7 +63,7 @@ def add_run_arguments(
     p.add_argument("--course", default="builtin", help="builtin (default), empty-room or box-ahead")
     p.add_argument(
         "--duration-s",
-        type=float,
+        type=positive_float,
         default=None,
         help=f"{duration_help} ({default_duration_s:g})",
     )

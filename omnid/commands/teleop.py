@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from omnid.commands._args import positive_float
+
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
@@ -23,7 +25,10 @@ def register(subparsers: Any) -> None:
         help="the daemon's teleop socket (default /run/omnid/teleop.sock)",
     )
     parser.add_argument(
-        "--reply-timeout-s", type=float, default=1.0, help="give up when the daemon is silent"
+        "--reply-timeout-s",
+        type=positive_float,
+        default=1.0,
+        help="give up when the daemon is silent",
     )
     parser.set_defaults(func=handler)
 

@@ -121,6 +121,8 @@ def test_cli_prints_the_table(capsys):
 
 
 def test_cli_refuses_a_bad_grid_step(capsys):
-    assert main(["experiment", "table72", "--grid-step-mm", "0"]) == 2
+    with pytest.raises(SystemExit) as exc:
+        main(["experiment", "table72", "--grid-step-mm", "0"])
+    assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "--grid-step-mm" in err and "Traceback" not in err
