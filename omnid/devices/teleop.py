@@ -9,7 +9,8 @@ keys from a terminal and sends one line per key press. Protocol, one ASCII line 
 Each accepted line becomes a :class:`KeyCommand` stamped with the server's monotonic clock and
 handed to ``on_command`` (the daemon's ``ControlCore.on_key``) and kept as ``latest``. Nothing is
 sent on key release or while no key is pressed: the daemon's mux times out a silent source, so a
-client that dies or a terminal that hangs stops the chair.
+terminal that hangs stops the chair within ``keyboard.hold_s``; a client that disconnects while
+its motion key is the newest command stops it at once (the server hands on a ``stop``).
 
 Access control is by file permission: the socket is created under a temporary name, given mode
 ``mode`` (default 0660) and group ``group`` (when set), and only then renamed to its final path,
@@ -97,6 +98,7 @@ class TeleopServer:
         self.errors = 0
         self._server: asyncio.Server | None = None
         self._clients: dict[asyncio.Task[None], _Client] = {}
+        self._holder: _Client | None = None  # whose motion key is the newest command
         self._throttle = LogThrottle(log, interval_s=5.0, clock=clock)
         self.refused = 0
         self.evicted = 0
@@ -152,21 +154,33 @@ class TeleopServer:
             with contextlib.suppress(OSError):
                 self.path.unlink()
 
-    def handle_line(self, line: str) -> str:
-        """Process one protocol line; returns the reply line (without newline)."""
+    def handle_line(self, line: str, client: _Client | None = None) -> str:
+        """Process one protocol line (from ``client``, when served); returns the reply line
+        (without newline)."""
         word = line.strip().lower()
         if word == "ping":
             return "pong"
         if word in COMMANDS:
-            cmd = KeyCommand(word, self.clock())
-            self.latest = cmd
-            self.commands += 1
-            if self.on_command is not None:
-                self.on_command(cmd)
+            self._deliver(KeyCommand(word, self.clock()))
+            self._holder = client if word != "stop" else None
             return "ok"
         self.errors += 1
         shown = word[:20] + ("..." if len(word) > 20 else "")
         return f"error unknown command {shown!r} (known: {', '.join(COMMANDS)}, ping)"
+
+    def _deliver(self, cmd: KeyCommand) -> None:
+        self.latest = cmd
+        self.commands += 1
+        if self.on_command is not None:
+            self.on_command(cmd)
+
+    def _release(self, client: _Client) -> None:
+        """``client`` is gone: if the newest command was its motion key, stop now rather than
+        let the press hold for ``keyboard.hold_s`` with nobody left to let go of it."""
+        if self._holder is client:
+            self._holder = None
+            log.warning("teleop client (uid %s) left while driving: stop", client.uid)
+            self._deliver(KeyCommand("stop", self.clock()))
 
     def _make_room(self) -> bool:
         """All places taken: evict the client idle longest if it has been idle long enough."""
@@ -227,7 +241,7 @@ class TeleopServer:
                 # a stop is never rate-limited: after a burst of key repeats it is the one
                 # line that must get through (it takes no token, and can move nothing)
                 if line.strip().lower() == "stop" or client.take(now):
-                    reply = self.handle_line(line)
+                    reply = self.handle_line(line, client)
                 else:
                     self.rate_limited += 1
                     reply = "error rate limit"
@@ -239,6 +253,7 @@ class TeleopServer:
             pass  # the server stops: end quietly (a cancelled handler is logged as an error)
         finally:
             self._throttle.info("disconnect", "teleop client disconnected (uid %s)", peer)
+            self._release(client)
             writer.close()
             self._clients.pop(task, None)
 

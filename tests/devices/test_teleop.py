@@ -163,7 +163,8 @@ def test_teleop_command_line_end_to_end(tmp_path):
 
     code, out, err = asyncio.run(go())
     assert code == 0, err
-    assert [c.command for c in got] == ["forward", "left"]
+    # q quits with "left" the newest command: the server stops the chair for the gone client
+    assert [c.command for c in got] == ["forward", "left", "stop"]
     assert "forward: ok" in out
 
 

@@ -36,3 +36,43 @@ def test_stop_is_never_rate_limited(tmp_path):
         f"the stop after a burst got {replies[-1]!r}; last command handed to the core: "
         f"{commands[-1]!r}"
     )
+
+
+def test_a_client_that_leaves_while_driving_stops_the_chair_at_once(tmp_path):
+    """A terminal closed (ssh dropped, window shut) mid-press: without a stop the last forward
+    held for keyboard.hold_s with nobody left to let go. A client that leaves while another
+    drives, or after its own stop, sends nothing."""
+    path = str(tmp_path / "t.sock")
+
+    async def send(w, r, word):
+        w.write(word.encode() + b"\n")
+        await w.drain()
+        assert (await asyncio.wait_for(r.readline(), 2.0)).strip() == b"ok"
+
+    async def main():
+        got = []
+        srv = TeleopServer(TeleopSettings(socket_path=path), got.append)
+        await srv.start()
+        try:
+            ra, wa = await asyncio.open_unix_connection(path)
+            rb, wb = await asyncio.open_unix_connection(path)
+            await send(wa, ra, "forward")
+            wa.close()  # A leaves mid-press
+            for _ in range(100):
+                if got[-1].command == "stop":
+                    break
+                await asyncio.sleep(0.01)
+            left_driving = [c.command for c in got]
+            await send(wb, rb, "left")
+            ra, wa = await asyncio.open_unix_connection(path)
+            wa.close()  # A' leaves while B drives: B's key stands
+            await send(wb, rb, "stop")
+            wb.close()  # B leaves after its own stop: nothing more
+            await asyncio.sleep(0.2)
+            return left_driving, [c.command for c in got]
+        finally:
+            await srv.stop()
+
+    left_driving, commands = asyncio.run(main())
+    assert left_driving == ["forward", "stop"]
+    assert commands == ["forward", "stop", "left", "stop"]
