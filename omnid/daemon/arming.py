@@ -92,9 +92,14 @@ class Arming:
         if self.enabled:
             src = demand.source
             if demand.moving and src in _CONTINUOUS and src not in self.at_rest_seen:
-                self._throttle.warning(
-                    "start", "motion refused until %s has been seen at rest since start", src
-                )
+                if src in self._relost:
+                    self._throttle.warning(
+                        "back", "motion refused until %s is released (it was lost and is back)", src
+                    )
+                else:
+                    self._throttle.warning(
+                        "start", "motion refused until %s has been seen at rest since start", src
+                    )
                 return RiderDemand(stop=True, source=src, reason="rearm_wait")
         if self.fault is not None:
             if self.cleared_s is None:

@@ -146,7 +146,8 @@ def test_omnid_run_stops_the_simulated_chair_before_a_box(tmp_path: Path) -> Non
         time.sleep(1.0)  # neutral head pose calibrated at start
         gs.motion = HeadMotion([(0.0, *FORWARD)])  # the rider tilts forward and holds it
         # the chair drives ... (a fault on a loaded machine — a control-unit status late —
-        # disarms it until the head is released, as a rider would: then it lets go a second)
+        # disarms it until the head is released, as a rider would: then it lets go a second;
+        # a tilt reading late on a loaded machine is a loss, and back it asks the same)
         t0, seen = time.monotonic(), 0
         while _chair(sim_lines)[0] < 300.0:
             out_sim.until(r"^t=", 30)
