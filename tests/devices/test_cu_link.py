@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -695,3 +696,41 @@ def test_frames_the_line_did_not_carry_are_never_sent_later():
     assert sent_held >= 5  # the link kept sending while the line was held
     assert delivered <= 1, f"{delivered} frames of {sent_held} held ones reached the unit"
     assert h.unsent_bytes_discarded > 0
+
+
+def test_urgent_commands_keep_the_period_grid_and_never_silence_the_link(
+    emu: ControlUnitEmulator,
+):
+    """Urgent commands (a rider's key presses, each one sent at once) must not push the link's
+    next regular frame further away: the period grid stays. Each urgent frame used to move the
+    next grid point one period on, so a burst of them (kicks every 5 ms over 0.3 s) left the
+    link silent for about as long as the burst lasted, and the unit's watchdog stopped the chair
+    with the link healthy and the control loop computing a fresh command every cycle."""
+
+    async def main() -> tuple[float, int]:
+        link = ControlUnitLink(settings(emu.path or "", unit_watchdog_s=0.1))
+        await link.start()
+        cycle = asyncio.create_task(control_cycle(link))
+        try:
+            await wait_for(lambda: link.health.healthy)
+            link.set_command(WheelCommand(0.3, 0.3, enable=True))
+            await wait_for(lambda: emu.applied_duty == (0.3, 0.3))
+            spy = WireSpy(emu)
+            trips0 = emu.watchdog_trips
+            end = time.monotonic() + 0.3
+            while time.monotonic() < end:  # the rider's command changes: urgent, every 5 ms
+                link.set_command(link.command, urgent=True)
+                await asyncio.sleep(0.005)
+            t_end = time.monotonic()
+            await asyncio.sleep(0.3)  # the regular cycle goes on (control_cycle, not urgent)
+            times = [t_end] + [t for t, _ in spy.after(t_end)]
+            gap = max(b - a for a, b in itertools.pairwise(times))
+            return gap, emu.watchdog_trips - trips0
+        finally:
+            cycle.cancel()
+            await link.stop()
+
+    gap, trips = asyncio.run(main())
+    # a frame every 10 ms period; 80 ms allows for a loaded machine, not for a silent link
+    assert gap < 0.08, f"no frame for {gap * 1000:.0f} ms after the urgent commands"
+    assert trips == 0, "the unit's watchdog stopped the chair behind a healthy link"
