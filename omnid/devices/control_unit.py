@@ -46,6 +46,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: clocks per second no wheel reaches, driven or pushed (200 = 6.3 m/s; the motors: ≈ 8): a
+#: larger counter change since the previous reply is a unit reset (docs/protocol.md)
+MAX_CLOCK_RATE_HZ = 200.0
+#: allowance for the reply timing in that bound, s
+CLOCK_SLACK_S = 0.1
+
 
 @dataclass(frozen=True)
 class WheelCommand:
@@ -403,15 +409,28 @@ class ControlUnitLink(PolledLink[ControlUnitHealth]):
         raw = (rep.left_clocks, rep.right_clocks)
         if self._last_raw is None:
             self._unwrapped = raw
-        elif rep.faults & codec.FAULT_RESET:
-            self._throttle.warning(
-                "reset", "control unit reset: clock counters restarted, odometry rebased"
-            )
         else:
-            self._unwrapped = (
-                self._unwrapped[0] + codec.unwrap_int32(self._last_raw[0], raw[0]),
-                self._unwrapped[1] + codec.unwrap_int32(self._last_raw[1], raw[1]),
-            )
+            dl = codec.unwrap_int32(self._last_raw[0], raw[0])
+            dr = codec.unwrap_int32(self._last_raw[1], raw[1])
+            # RESET is reported once: if that reply was lost, counters restarted near 0 are
+            # recognised by a change no wheel can make in the time since the previous reply
+            since_s = 0.0 if self._last_reply_t is None else max(now - self._last_reply_t, 0.0)
+            limit = MAX_CLOCK_RATE_HZ * (since_s + CLOCK_SLACK_S)
+            if rep.faults & codec.FAULT_RESET:
+                self._throttle.warning(
+                    "reset", "control unit reset: clock counters restarted, odometry rebased"
+                )
+            elif max(abs(dl), abs(dr)) > limit:
+                self._throttle.warning(
+                    "reset",
+                    "control unit clock counters jumped by (%d, %d) in %.0f ms: taken as a "
+                    "reset whose RESET reply was lost, odometry rebased",
+                    dl,
+                    dr,
+                    since_s * 1000,
+                )
+            else:
+                self._unwrapped = (self._unwrapped[0] + dl, self._unwrapped[1] + dr)
         self._last_raw = raw
         if rep.faults & ~codec.FAULT_RESET and rep.faults != h.unit_faults:
             self._throttle.warning(

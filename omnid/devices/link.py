@@ -14,7 +14,7 @@ that poll a device half-duplex (the control unit, the GS311 tilt sensor) share a
   failure backs off before the next attempt, so a port that opens but fails at once cannot spin
   the event loop;
 - the wake-up event (:meth:`PolledLink._wake_up`): ends the current wait early (stop, an urgent
-  command); a wake-up set during an exchange is not lost;
+  command) without moving the period grid; a wake-up set during an exchange is not lost;
 - the shared health fields (:class:`LinkHealth`: connected, port_errors, reconnects,
   last_error), and rate-limited logging of what can repeat (``_throttle``).
 
@@ -241,8 +241,13 @@ class PolledLink(Generic[H]):
             self._check_stale()
             if answered:
                 backoff = self._reconnect_initial_s  # the device answered: a fresh back-off
-            next_t += self._period_s
-            delay = next_t - loop.time()
+            now = loop.time()
+            if now >= next_t:  # the grid's exchange: on to the next grid point
+                next_t += self._period_s
+            # else a wake-up (urgent command) ran it early: the grid stays, the next regular
+            # exchange is still due at next_t (advancing here pushed it one period further for
+            # every urgent exchange, so a burst of them silenced the link)
+            delay = next_t - now
             if delay < -self._period_s:  # overran (loop blocked): restart the grid
                 next_t = loop.time()
                 delay = 0.0

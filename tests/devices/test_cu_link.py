@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -695,3 +696,88 @@ def test_frames_the_line_did_not_carry_are_never_sent_later():
     assert sent_held >= 5  # the link kept sending while the line was held
     assert delivered <= 1, f"{delivered} frames of {sent_held} held ones reached the unit"
     assert h.unsent_bytes_discarded > 0
+
+
+def test_urgent_commands_keep_the_period_grid_and_never_silence_the_link(
+    emu: ControlUnitEmulator,
+):
+    """Urgent commands (a rider's key presses, each one sent at once) must not push the link's
+    next regular frame further away: the period grid stays. Each urgent frame used to move the
+    next grid point one period on, so a burst of them (kicks every 5 ms over 0.3 s) left the
+    link silent for about as long as the burst lasted, and the unit's watchdog stopped the chair
+    with the link healthy and the control loop computing a fresh command every cycle."""
+
+    async def main() -> tuple[float, int]:
+        link = ControlUnitLink(settings(emu.path or "", unit_watchdog_s=0.1))
+        await link.start()
+        cycle = asyncio.create_task(control_cycle(link))
+        try:
+            await wait_for(lambda: link.health.healthy)
+            link.set_command(WheelCommand(0.3, 0.3, enable=True))
+            await wait_for(lambda: emu.applied_duty == (0.3, 0.3))
+            spy = WireSpy(emu)
+            trips0 = emu.watchdog_trips
+            end = time.monotonic() + 0.3
+            while time.monotonic() < end:  # the rider's command changes: urgent, every 5 ms
+                link.set_command(link.command, urgent=True)
+                await asyncio.sleep(0.005)
+            t_end = time.monotonic()
+            await asyncio.sleep(0.3)  # the regular cycle goes on (control_cycle, not urgent)
+            times = [t_end] + [t for t, _ in spy.after(t_end)]
+            gap = max(b - a for a, b in itertools.pairwise(times))
+            return gap, emu.watchdog_trips - trips0
+        finally:
+            cycle.cancel()
+            await link.stop()
+
+    gap, trips = asyncio.run(main())
+    # a frame every 10 ms period; 80 ms allows for a loaded machine, not for a silent link
+    assert gap < 0.08, f"no frame for {gap * 1000:.0f} ms after the urgent commands"
+    assert trips == 0, "the unit's watchdog stopped the chair behind a healthy link"
+
+
+def test_a_unit_reset_whose_reset_reply_was_lost_does_not_make_odometry_jump(caplog):
+    """RESET is latched: reported once, in the reply to the next valid command. A unit that
+    restarts (a brown-out under motor current) and whose first reply is lost (one corrupted
+    reply, or one past its deadline on a busy machine) then answers with counters restarted
+    near 0 and no RESET flag. The link used to unwrap that as travel: tens of thousands of
+    clocks backwards in one reply (here 1.5 km), which the daemon's odometry turns into a jump
+    of the chair's pose that throws every remembered obstacle out of the local map. A change no
+    wheel can make in the time since the previous reply is a reset: rebased and logged."""
+    caplog.set_level(logging.WARNING, "omnid.devices.control_unit")
+
+    async def main() -> tuple[int, int, int, int]:
+        a, b = pipe_pair()
+        units = [ControlUnitEmulator(clock_offset=50_000)]  # a unit that has counted a while
+        parser = codec.FrameParser(accept=(codec.TYPE_COMMAND,))
+
+        async def serve() -> None:
+            while True:
+                data = await b.read_some(256, 5.0)
+                for frame in parser.feed(data):
+                    reply = units[-1].handle_bytes(codec.encode_command(frame))
+                    if reply:
+                        await b.write(reply)
+
+        server = asyncio.create_task(serve())
+        link = ControlUnitLink(settings("pipe"), transport_factory=lambda: a)
+        await link.start()
+        try:
+            await wait_for(lambda: link.health.replies_ok >= 3)
+            before = link.status
+            assert before is not None and before.left_clocks == 50_000
+            fresh = ControlUnitEmulator()  # power-up: counters at 0, RESET latched
+            fresh.corrupt_replies(1)  # ... and its first reply, the one with RESET, is lost
+            units.append(fresh)
+            ok = link.health.replies_ok
+            await wait_for(lambda: link.health.replies_ok >= ok + 3)
+            after = link.status
+            assert after is not None
+            return before.left_clocks, after.left_clocks, before.right_clocks, after.right_clocks
+        finally:
+            await link.stop()
+            server.cancel()
+
+    l0, l1, r0, r1 = asyncio.run(main())
+    assert abs(l1 - l0) <= 2 and abs(r1 - r0) <= 2, f"odometry jumped {l1 - l0}, {r1 - r0} clocks"
+    assert "reset" in caplog.text
