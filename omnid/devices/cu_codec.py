@@ -239,7 +239,7 @@ def _frame(ftype: int, seq: int, payload: bytes) -> bytes:
 
 
 def encode_command(cmd: CommandFrame) -> bytes:
-    """The 13 wire bytes of a command frame."""
+    """The 17 wire bytes of a command frame."""
     return _frame(
         TYPE_COMMAND,
         cmd.seq,
