@@ -212,3 +212,40 @@ def test_reload_keeps_old_config_when_new_is_invalid(tmp_path):
 def test_missing_file_is_one_line_error(tmp_path):
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "nope.yaml")
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        # an integer too large for a float: OverflowError in the finite check
+        ("control:\n  rate_hz: 1" + "0" * 400 + "\n", "control.rate_hz: "),
+        # more digits than Python converts (ValueError inside PyYAML's constructor)
+        ("perception:\n  worker_nice: " + "1" * 5000 + "\n", "line 2:"),
+        ("control:\n  rate_hz: " + "1" * 5000 + "\n", "line 2:"),
+        ("record:\n  path: 2024-13-45\n", "line 2:"),  # a date that is no date
+        ("control:\n  rate_hz: !!float fast\n", "line 2:"),
+        ("perception:\n  worker_nice: !!int ten\n", "line 2:"),
+        ("control:\n  rearm_after_fault: !!bool maybe\n", "line 2:"),
+        ("record:\n  path: !!timestamp soon\n", "line 2:"),
+        # hexadecimal has no digit limit: an int whose repr (in the message) fails
+        ("perception:\n  worker_nice: 0x" + "f" * 5000 + "\n", "perception.worker_nice: "),
+        ("control:\n  rate_hz: 0x" + "f" * 5000 + "\n", "control.rate_hz: "),
+    ],
+    ids=lambda v: v.split(":")[0] if ": " in v else None,
+)
+def test_values_yaml_cannot_build_are_one_line_naming_file_and_place(tmp_path, text, words):
+    """A value PyYAML's constructors (or the number checks) choke on is a ConfigError in one
+    line with the file and the line or key — it was a ValueError/OverflowError/KeyError, so
+    `omnid run` printed a traceback and a SIGHUP logged 'reload failed' without the key."""
+    p = tmp_path / "omnid.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert msg.startswith(f"{p}: ") and words in msg and "\n" not in msg, msg
+    assert len(msg) < 300, msg
+    holder = ConfigHolder(SHIPPED)
+    p.write_text(text)
+    holder.path = p
+    ok, why = holder.reload()
+    assert not ok and words in why and holder.config == OmnidConfig()
