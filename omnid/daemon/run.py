@@ -50,8 +50,10 @@ Tasks:
 - signals: SIGTERM/SIGINT → stop at the emergency rate, send stop commands, close, exit 0;
   SIGHUP → reload the configuration: the file is read and validated in a helper thread with a
   timeout (``service.reload_timeout_s``), never on the event loop; an invalid or slow file is
-  refused and the old one stays; ``READY=1`` always follows ``RELOADING=1``; device and
-  perception settings apply at the next start.
+  refused and the old one stays; ``READY=1`` always follows ``RELOADING=1``. A file that
+  changes what the daemon built at start (``omnid.daemon.config.RESTART_ONLY``: the loop rate,
+  the device links, perception, the map, which rider inputs are open) is refused as a whole,
+  naming the key: a reload applies all of the file or none of it.
 """
 
 from __future__ import annotations
@@ -72,7 +74,7 @@ from typing import Any
 import numpy as np
 
 from omnid.daemon.capture import CaptureCycle, CaptureFailure, CaptureSettings, Frame
-from omnid.daemon.config import ConfigHolder, OmnidConfig
+from omnid.daemon.config import ConfigHolder, OmnidConfig, restart_only_refusal
 from omnid.daemon.core import ControlCore
 from omnid.daemon.service import Notifier
 from omnid.devices.camera import MAX_BUFFER_AGE_S
@@ -808,15 +810,15 @@ class Daemon:
         self.notifier.reloading()
         status = "reload failed"
         try:
-            ok, why = await self.holder.reload_off_loop(self.config.service.reload_timeout_s)
+            ok, why = await self.holder.reload_off_loop(
+                self.config.service.reload_timeout_s, check=restart_only_refusal
+            )
             if not ok:
                 status = f"reload refused: {why}"
                 return False
             self._swap_core()
             status = "reloaded"
-            log.info(
-                "configuration reloaded (device and perception settings apply at the next start)"
-            )
+            log.info("configuration reloaded")
             return True
         except Exception:
             log.exception("configuration reload failed; the running configuration stays")
