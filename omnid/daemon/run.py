@@ -831,6 +831,9 @@ class Daemon:
         new = ControlCore(self.holder.config, world_map=old.map)
         new.status, new.perception_time_s = old.status, old.perception_time_s
         new.odometry, new.motion.ramp.v_mm_s = old.odometry, old.motion.ramp.v_mm_s
+        # the pose and clock reference go on, measured with the new motion settings (the
+        # speed window); mm_per_clock and track_mm are the same (RESTART_ONLY)
+        new.odometry.settings = new.config.motion
         new.motion.ramp.omega_rad_s = old.motion.ramp.omega_rad_s
         new.laser_on, new.capturing = old.laser_on, old.capturing
         new.link_ok, new.camera_ok = old.link_ok, old.camera_ok

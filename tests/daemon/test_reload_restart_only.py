@@ -138,3 +138,23 @@ def test_a_reload_of_live_settings_still_applies(tmp_path):
     assert cfg.safety.margin_mm == 80.0 and cfg.motion.max_speed_mm_s == 200.0
     assert cfg.control.status_timeout_s == 0.3 and cfg.rider.keyboard.hold_s == 0.4
     assert d.holder.config == cfg
+
+
+def test_a_reloaded_speed_window_reaches_the_kept_odometry(tmp_path):
+    """The odometry outlives a reload (pose, clock reference); its motion settings must be the
+    new ones: it kept the start file's speed_window_s, so the wheel PI went on measuring over
+    the old window after 'reloaded'."""
+    d = daemon(tmp_path)
+    d.core.on_joystick(JoystickReading(0.0, 0.0, -0.02))
+    d.core.step(-0.02)
+    chair = Chair()
+    ride(d.core, chair, 0.0, 2.0, 1.0)
+    pose = d.core.odometry.pose.copy()
+    d.holder.path.write_text(yaml.safe_dump(merged({"motion": {"speed_window_s": 0.2}})))
+    assert asyncio.run(d.reload()) is True
+    assert (d.core.odometry.pose == pose).all()  # kept
+    assert d.core.odometry.settings == d.core.config.motion, (
+        f"odometry measures over {d.core.odometry.settings.speed_window_s} s after the reload"
+    )
+    ride(d.core, chair, 2.0, 2.3, 1.0)  # and goes on from where it was (no jump)
+    assert 0.0 < d.core.odometry.pose[0] - pose[0] < 0.3 * 260.0
