@@ -148,6 +148,13 @@ class OmnidConfig(Settings):
             "one control period must not exceed control_unit.command_period_s (the link "
             "sends only commands computed within the last two command periods)",
         )
+        # the capture cycle (built at start, perception on or off) keeps laser switches out of
+        # every exposure: one must end within its frame
+        require(
+            self.camera.exposure_s < 1.0 / self.camera.fps,
+            "camera.exposure_s",
+            f"must be shorter than one frame (1/camera.fps = {1e3 / self.camera.fps:.1f} ms)",
+        )
         if self.perception.enabled and self.perception.capture == "stationary":
             require(
                 self.safety.perception_timeout_s > self.perception.period_s,

@@ -249,3 +249,26 @@ def test_values_yaml_cannot_build_are_one_line_naming_file_and_place(tmp_path, t
     holder.path = p
     ok, why = holder.reload()
     assert not ok and words in why and holder.config == OmnidConfig()
+
+
+def test_an_exposure_longer_than_a_frame_is_refused_by_the_loader_and_run_check(tmp_path, capsys):
+    """camera.exposure_s must be shorter than a frame (1/camera.fps): the daemon's capture cycle
+    needs it whether perception is on or not. The loader let it through, `omnid run --check`
+    said ok (exit 0), and `omnid run` then refused to start with 'exposure_s: must be below
+    the period' — neither the file nor the section named."""
+    from omnid.cli import main
+
+    p = tmp_path / "omnid.yaml"
+    p.write_text(
+        "perception:\n  enabled: false\ncontrol_unit:\n  port: loop://\n"
+        "rider:\n  tilt:\n    enabled: false\n  keyboard:\n    enabled: false\n"
+        "camera:\n  fps: 30.0\n  exposure_s: 0.05\n"
+    )
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    assert str(err.value).startswith(f"{p}: camera.exposure_s: "), str(err.value)
+    assert main(["run", "--check", "--config", str(p)]) == 2
+    out = capsys.readouterr()
+    assert "camera.exposure_s" in out.err and "\n" not in out.err.strip(), out
+    p.write_text("camera:\n  fps: 15.0\n  exposure_s: 0.05\n")  # a slower clock: it fits
+    assert load_config(p).camera.exposure_s == 0.05
