@@ -272,3 +272,30 @@ def test_an_exposure_longer_than_a_frame_is_refused_by_the_loader_and_run_check(
     assert "camera.exposure_s" in out.err and "\n" not in out.err.strip(), out
     p.write_text("camera:\n  fps: 15.0\n  exposure_s: 0.05\n")  # a slower clock: it fits
     assert load_config(p).camera.exposure_s == 0.05
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "freespace:\n  reanchor_distance_mm: 20000.0\n",
+        "freespace:\n  grid:\n    x_max_mm: 20000.0\n",
+        "freespace:\n  grid:\n    y_min_mm: -19500.0\n",
+    ],
+)
+def test_a_map_the_daemon_cannot_build_is_refused_by_the_loader(tmp_path, text):
+    """The remembered map keeps a square of ±(grid extent + reanchor_distance_mm + resolution)
+    around its anchor, itself a grid held to ±20 m. Each key in its range, the loader took
+    e.g. reanchor_distance_mm: 20000, `run --check` said ok, and `omnid run` refused with
+    'x_min_mm: -24050.0 is outside [-20000, 20000]' — a key nobody wrote, no file, no section."""
+    from omnid.daemon.run import Daemon
+
+    p = tmp_path / "omnid.yaml"
+    base = "perception:\n  enabled: false\ncontrol_unit:\n  port: loop://\n"
+    p.write_text(base + text)
+    try:
+        holder = ConfigHolder(p)
+    except ConfigError as err:
+        assert str(err).startswith(f"{p}: freespace."), str(err)
+        assert "reanchor_distance_mm" in str(err)
+        return
+    Daemon(holder)  # accepted: the daemon must then build its map
