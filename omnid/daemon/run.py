@@ -835,6 +835,12 @@ class Daemon:
         # speed window); mm_per_clock and track_mm are the same (RESTART_ONLY)
         new.odometry.settings = new.config.motion
         new.motion.ramp.omega_rad_s = old.motion.ramp.omega_rad_s
+        # the wheel PI goes on where it was: its integrators hold what a slope or a load asks
+        # (reset, the duty jumped by up to integral_limit — downhill, the chair sped up)
+        lim = new.config.motion.integral_limit
+        for pi, was in ((new.motion.left, old.motion.left), (new.motion.right, old.motion.right)):
+            pi.integral = min(max(was.integral, -lim), lim)
+        new.motion.targets_mm_s, new.motion.duties = old.motion.targets_mm_s, old.motion.duties
         new.laser_on, new.capturing = old.laser_on, old.capturing
         new.link_ok, new.camera_ok = old.link_ok, old.camera_ok
         new.path_mm, new._poses = old.path_mm, old._poses
