@@ -129,6 +129,8 @@ def require(condition: bool, key: str, message: str) -> None:
 
 
 def _describe(value: Any) -> str:
+    if isinstance(value, int) and value.bit_length() > 200:  # repr fails beyond 4300 digits
+        return f"an integer of {value.bit_length()} bits"
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
 
@@ -172,9 +174,13 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{key}: expected a number, got {_describe(value)}")
-        if not math.isfinite(value):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond any float
+            raise ConfigError(f"{key}: {_describe(value)} is too large for a number") from None
+        if not math.isfinite(number):
             raise ConfigError(f"{key}: expected a finite number, got {_describe(value)}")
-        return float(value)
+        return number
     if tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"{key}: expected a string, got {_describe(value)}")
@@ -284,6 +290,20 @@ class LimitedLoader(yaml.SafeLoader):
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
+
+    def construct_object(self, node: Any, deep: bool = False) -> Any:
+        # PyYAML's constructors raise plain exceptions for values they cannot build (a date
+        # 2024-13-45, `!!float fast`, an integer of more than 4300 digits): a finding with its
+        # place, like any other malformed YAML
+        try:
+            return super().construct_object(node, deep=deep)
+        except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as exc:
+            value = node.value if isinstance(node, yaml.ScalarNode) else node.tag
+            raise _Refused(
+                f"cannot read {_describe(value)} as {node.tag.rsplit(':', 1)[-1]} "
+                f"({type(exc).__name__}: {str(exc)[:80]})",
+                node.start_mark,
+            ) from None
 
     def construct_mapping(self, node: Any, deep: bool = False) -> Any:
         if isinstance(node, yaml.MappingNode):

@@ -64,13 +64,13 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omnid.config import Settings, require, setting
+from omnid.config import Settings, require, setting, setting_range
 from omnid.core.occupancy import CellState, GridSettings, OccupancyGrid, rig_to_robot
 from omnid.core.types import PointClass, PointCloud
 
@@ -167,6 +167,24 @@ class FreeSpaceSettings(Settings):
             "neighbours",
             f"must be 'lattice' or 'delaunay', not {self.neighbours!r}",
         )
+        # the stored (anchor) grid is itself a GridSettings, held to the same bounds
+        x_max = next(f for f in fields(GridSettings) if f.name == "x_max_mm")
+        _, high = setting_range(x_max) or (0.0, math.inf)
+        half = anchor_half_mm(self)
+        require(
+            half <= high,
+            "reanchor_distance_mm",
+            f"the stored map spans ±(the grid's farthest edge + reanchor_distance_mm + "
+            f"grid.resolution_mm) = ±{half:g} mm; at most ±{high:g}",
+        )
+
+
+def anchor_half_mm(settings: FreeSpaceSettings) -> float:
+    """Half the side of the stored square grid: the robot grid stays inside it however the
+    chair turns and until it travels ``reanchor_distance_mm``."""
+    g = settings.grid
+    half = max(abs(g.x_min_mm), abs(g.x_max_mm), abs(g.y_min_mm), abs(g.y_max_mm))
+    return half + settings.reanchor_distance_mm + g.resolution_mm
 
 
 def _affine(
@@ -282,8 +300,7 @@ class FreeSpaceMap:
         g = self.settings.grid
         # The anchor grid is a square around the anchor pose, large enough that the robot grid
         # stays inside it however the chair turns and until it travels reanchor_distance_mm.
-        half = max(abs(g.x_min_mm), abs(g.x_max_mm), abs(g.y_min_mm), abs(g.y_max_mm))
-        half += self.settings.reanchor_distance_mm + g.resolution_mm
+        half = anchor_half_mm(self.settings)
         self._anchor_settings = GridSettings(g.resolution_mm, -half, half, -half, half)
         self._anchor = OccupancyGrid(self._anchor_settings)
         shape = self._anchor.states.shape

@@ -4,7 +4,8 @@ Read once at start with :func:`load_config` (unknown keys, duplicate keys and va
 range are refused with the dotted key and the file named). The dataclass defaults are the shipped
 ``etc/omnid.yaml`` (``tests/daemon/test_daemon_config.py`` proves it). On SIGHUP the daemon calls
 :meth:`ConfigHolder.reload_off_loop`, which reads the file in a helper thread with a timeout and
-keeps the running configuration when the new file is invalid, saying why.
+keeps the running configuration when the new file is invalid, saying why; the daemon refuses
+as well a file that changes a key only a restart can apply (:data:`RESTART_ONLY`).
 """
 
 from __future__ import annotations
@@ -12,11 +13,12 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from omnid.config import Settings, from_mapping, load_yaml, require, setting
+from omnid.config import Settings, from_mapping, load_yaml, require, setting, to_mapping
 from omnid.core.detect import DetectionParams
 from omnid.core.freespace import FreeSpaceSettings
 from omnid.daemon.motion import MotionSettings
@@ -146,6 +148,13 @@ class OmnidConfig(Settings):
             "one control period must not exceed control_unit.command_period_s (the link "
             "sends only commands computed within the last two command periods)",
         )
+        # the capture cycle (built at start, perception on or off) keeps laser switches out of
+        # every exposure: one must end within its frame
+        require(
+            self.camera.exposure_s < 1.0 / self.camera.fps,
+            "camera.exposure_s",
+            f"must be shorter than one frame (1/camera.fps = {1e3 / self.camera.fps:.1f} ms)",
+        )
         if self.perception.enabled and self.perception.capture == "stationary":
             require(
                 self.safety.perception_timeout_s > self.perception.period_s,
@@ -155,6 +164,59 @@ class OmnidConfig(Settings):
             )
 
 
+#: What ``omnid run`` builds its links, tasks and map from at start (the control loop's period,
+#: the control-unit link, the cameras and the perception worker, the remembered map, the rider
+#: devices it opened, the capture cycle's odometry): none of these can take a new value while
+#: it runs. A reload that changes one is refused as a whole, naming the key — applying the
+#: rest would leave the core on values the links, the loop or the map do not use.
+RESTART_ONLY = (
+    "control.rate_hz",
+    "rider.tilt.enabled",
+    "rider.joystick.enabled",
+    "rider.keyboard.enabled",
+    "motion.mm_per_clock",
+    "motion.track_mm",
+    "freespace",
+    "detection",
+    "perception",
+    "control_unit",
+    "camera",
+    "teleop",
+    "tilt_sensor",
+    "joystick_device",
+)
+
+
+def _changed(old: object, new: object, key: str) -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        return [c for k in old for c in _changed(old[k], new[k], f"{key}.{k}")]
+    return [] if old == new else [key]
+
+
+def restart_only_changes(old: OmnidConfig, new: OmnidConfig) -> list[str]:
+    """The full dotted keys of :data:`RESTART_ONLY` whose value differs between the two."""
+    out: list[str] = []
+    before, after = to_mapping(old), to_mapping(new)
+    for key in RESTART_ONLY:
+        a, b = before, after
+        for part in key.split("."):
+            a, b = a[part], b[part]
+        out += _changed(a, b, key)
+    return out
+
+
+def restart_only_refusal(old: OmnidConfig, new: OmnidConfig) -> str | None:
+    """Why a reload from ``old`` to ``new`` cannot apply (``None``: it can)."""
+    keys = restart_only_changes(old, new)
+    if not keys:
+        return None
+    more = f" (and {len(keys) - 1} more)" if len(keys) > 1 else ""
+    return (
+        f"{keys[0]}{more}: changed, and takes effect only at a restart (systemctl restart "
+        "omnid); nothing of the new file applied"
+    )
+
+
 def load_config(path: str | Path) -> OmnidConfig:
     """Read and validate ``path``; :class:`ConfigError` names the file and the dotted key."""
     data = load_yaml(path)
@@ -162,6 +224,10 @@ def load_config(path: str | Path) -> OmnidConfig:
         return from_mapping(OmnidConfig, data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+#: ``check(old, new)`` of a reload: why the new configuration cannot apply, or ``None``
+Check = Callable[[OmnidConfig, OmnidConfig], str | None]
 
 
 class ConfigHolder:
@@ -189,16 +255,23 @@ class ConfigHolder:
         log.error("configuration reload refused, keeping the running one: %s", why)
         return False, why
 
-    def reload(self) -> tuple[bool, str]:
+    def _check(self, new: OmnidConfig, check: Check | None) -> tuple[bool, str]:
+        why = None if check is None else check(self.config, new)
+        return self._refuse(f"{self.path}: {why}") if why else self._accept(new)
+
+    def reload(self, check: Check | None = None) -> tuple[bool, str]:
         """Re-read the file. Returns (True, "reloaded") or (False, reason); on failure the
-        previous configuration stays in force."""
+        previous configuration stays in force. ``check(old, new)``: a reason to refuse the new
+        one (the daemon's :func:`restart_only_refusal`), or ``None``."""
         try:
             new = load_config(self.path)
         except ConfigError as exc:
             return self._refuse(str(exc))
-        return self._accept(new)
+        return self._check(new, check)
 
-    async def reload_off_loop(self, timeout_s: float) -> tuple[bool, str]:
+    async def reload_off_loop(
+        self, timeout_s: float, check: Check | None = None
+    ) -> tuple[bool, str]:
         """:meth:`reload`, the file read and validated in a helper thread; a read that takes
         longer than ``timeout_s`` (or one still running from an earlier request) is refused."""
         if self._reading is not None and not self._reading.done():
@@ -215,7 +288,7 @@ class ConfigHolder:
             return self._refuse(f"{self.path}: reading took longer than {timeout_s:g} s")
         except ConfigError as exc:
             return self._refuse(str(exc))
-        return self._accept(new)
+        return self._check(new, check)
 
     def close(self) -> None:
         """End the helper thread (a read still running finishes on its own)."""

@@ -50,8 +50,10 @@ Tasks:
 - signals: SIGTERM/SIGINT → stop at the emergency rate, send stop commands, close, exit 0;
   SIGHUP → reload the configuration: the file is read and validated in a helper thread with a
   timeout (``service.reload_timeout_s``), never on the event loop; an invalid or slow file is
-  refused and the old one stays; ``READY=1`` always follows ``RELOADING=1``; device and
-  perception settings apply at the next start.
+  refused and the old one stays; ``READY=1`` always follows ``RELOADING=1``. A file that
+  changes what the daemon built at start (``omnid.daemon.config.RESTART_ONLY``: the loop rate,
+  the device links, perception, the map, which rider inputs are open) is refused as a whole,
+  naming the key: a reload applies all of the file or none of it.
 """
 
 from __future__ import annotations
@@ -72,7 +74,7 @@ from typing import Any
 import numpy as np
 
 from omnid.daemon.capture import CaptureCycle, CaptureFailure, CaptureSettings, Frame
-from omnid.daemon.config import ConfigHolder, OmnidConfig
+from omnid.daemon.config import ConfigHolder, OmnidConfig, restart_only_refusal
 from omnid.daemon.core import ControlCore
 from omnid.daemon.service import Notifier
 from omnid.devices.camera import MAX_BUFFER_AGE_S
@@ -808,15 +810,15 @@ class Daemon:
         self.notifier.reloading()
         status = "reload failed"
         try:
-            ok, why = await self.holder.reload_off_loop(self.config.service.reload_timeout_s)
+            ok, why = await self.holder.reload_off_loop(
+                self.config.service.reload_timeout_s, check=restart_only_refusal
+            )
             if not ok:
                 status = f"reload refused: {why}"
                 return False
             self._swap_core()
             status = "reloaded"
-            log.info(
-                "configuration reloaded (device and perception settings apply at the next start)"
-            )
+            log.info("configuration reloaded")
             return True
         except Exception:
             log.exception("configuration reload failed; the running configuration stays")
@@ -829,7 +831,16 @@ class Daemon:
         new = ControlCore(self.holder.config, world_map=old.map)
         new.status, new.perception_time_s = old.status, old.perception_time_s
         new.odometry, new.motion.ramp.v_mm_s = old.odometry, old.motion.ramp.v_mm_s
+        # the pose and clock reference go on, measured with the new motion settings (the
+        # speed window); mm_per_clock and track_mm are the same (RESTART_ONLY)
+        new.odometry.settings = new.config.motion
         new.motion.ramp.omega_rad_s = old.motion.ramp.omega_rad_s
+        # the wheel PI goes on where it was: its integrators hold what a slope or a load asks
+        # (reset, the duty jumped by up to integral_limit — downhill, the chair sped up)
+        lim = new.config.motion.integral_limit
+        for pi, was in ((new.motion.left, old.motion.left), (new.motion.right, old.motion.right)):
+            pi.integral = min(max(was.integral, -lim), lim)
+        new.motion.targets_mm_s, new.motion.duties = old.motion.targets_mm_s, old.motion.duties
         new.laser_on, new.capturing = old.laser_on, old.capturing
         new.link_ok, new.camera_ok = old.link_ok, old.camera_ok
         new.path_mm, new._poses = old.path_mm, old._poses

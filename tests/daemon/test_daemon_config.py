@@ -212,3 +212,90 @@ def test_reload_keeps_old_config_when_new_is_invalid(tmp_path):
 def test_missing_file_is_one_line_error(tmp_path):
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "nope.yaml")
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        # an integer too large for a float: OverflowError in the finite check
+        ("control:\n  rate_hz: 1" + "0" * 400 + "\n", "control.rate_hz: "),
+        # more digits than Python converts (ValueError inside PyYAML's constructor)
+        ("perception:\n  worker_nice: " + "1" * 5000 + "\n", "line 2:"),
+        ("control:\n  rate_hz: " + "1" * 5000 + "\n", "line 2:"),
+        ("record:\n  path: 2024-13-45\n", "line 2:"),  # a date that is no date
+        ("control:\n  rate_hz: !!float fast\n", "line 2:"),
+        ("perception:\n  worker_nice: !!int ten\n", "line 2:"),
+        ("control:\n  rearm_after_fault: !!bool maybe\n", "line 2:"),
+        ("record:\n  path: !!timestamp soon\n", "line 2:"),
+        # hexadecimal has no digit limit: an int whose repr (in the message) fails
+        ("perception:\n  worker_nice: 0x" + "f" * 5000 + "\n", "perception.worker_nice: "),
+        ("control:\n  rate_hz: 0x" + "f" * 5000 + "\n", "control.rate_hz: "),
+    ],
+    ids=lambda v: v.split(":")[0] if ": " in v else None,
+)
+def test_values_yaml_cannot_build_are_one_line_naming_file_and_place(tmp_path, text, words):
+    """A value PyYAML's constructors (or the number checks) choke on is a ConfigError in one
+    line with the file and the line or key — it was a ValueError/OverflowError/KeyError, so
+    `omnid run` printed a traceback and a SIGHUP logged 'reload failed' without the key."""
+    p = tmp_path / "omnid.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert msg.startswith(f"{p}: ") and words in msg and "\n" not in msg, msg
+    assert len(msg) < 300, msg
+    holder = ConfigHolder(SHIPPED)
+    p.write_text(text)
+    holder.path = p
+    ok, why = holder.reload()
+    assert not ok and words in why and holder.config == OmnidConfig()
+
+
+def test_an_exposure_longer_than_a_frame_is_refused_by_the_loader_and_run_check(tmp_path, capsys):
+    """camera.exposure_s must be shorter than a frame (1/camera.fps): the daemon's capture cycle
+    needs it whether perception is on or not. The loader let it through, `omnid run --check`
+    said ok (exit 0), and `omnid run` then refused to start with 'exposure_s: must be below
+    the period' — neither the file nor the section named."""
+    from omnid.cli import main
+
+    p = tmp_path / "omnid.yaml"
+    p.write_text(
+        "perception:\n  enabled: false\ncontrol_unit:\n  port: loop://\n"
+        "rider:\n  tilt:\n    enabled: false\n  keyboard:\n    enabled: false\n"
+        "camera:\n  fps: 30.0\n  exposure_s: 0.05\n"
+    )
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    assert str(err.value).startswith(f"{p}: camera.exposure_s: "), str(err.value)
+    assert main(["run", "--check", "--config", str(p)]) == 2
+    out = capsys.readouterr()
+    assert "camera.exposure_s" in out.err and "\n" not in out.err.strip(), out
+    p.write_text("camera:\n  fps: 15.0\n  exposure_s: 0.05\n")  # a slower clock: it fits
+    assert load_config(p).camera.exposure_s == 0.05
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "freespace:\n  reanchor_distance_mm: 20000.0\n",
+        "freespace:\n  grid:\n    x_max_mm: 20000.0\n",
+        "freespace:\n  grid:\n    y_min_mm: -19500.0\n",
+    ],
+)
+def test_a_map_the_daemon_cannot_build_is_refused_by_the_loader(tmp_path, text):
+    """The remembered map keeps a square of ±(grid extent + reanchor_distance_mm + resolution)
+    around its anchor, itself a grid held to ±20 m. Each key in its range, the loader took
+    e.g. reanchor_distance_mm: 20000, `run --check` said ok, and `omnid run` refused with
+    'x_min_mm: -24050.0 is outside [-20000, 20000]' — a key nobody wrote, no file, no section."""
+    from omnid.daemon.run import Daemon
+
+    p = tmp_path / "omnid.yaml"
+    base = "perception:\n  enabled: false\ncontrol_unit:\n  port: loop://\n"
+    p.write_text(base + text)
+    try:
+        holder = ConfigHolder(p)
+    except ConfigError as err:
+        assert str(err).startswith(f"{p}: freespace."), str(err)
+        assert "reanchor_distance_mm" in str(err)
+        return
+    Daemon(holder)  # accepted: the daemon must then build its map
