@@ -217,9 +217,17 @@ def restart_only_refusal(old: OmnidConfig, new: OmnidConfig) -> str | None:
     )
 
 
-def load_config(path: str | Path) -> OmnidConfig:
-    """Read and validate ``path``; :class:`ConfigError` names the file and the dotted key."""
+def load_config(path: str | Path, allow_empty: bool = True) -> OmnidConfig:
+    """Read and validate ``path``; :class:`ConfigError` names the file and the dotted key. An
+    empty file is the shipped configuration at start; ``allow_empty=False`` (a reload) refuses
+    it: a file emptied by accident (an editor's truncated save) must not reset a tuned
+    footprint or speed to the built-in defaults under a running chair."""
     data = load_yaml(path)
+    if not allow_empty and not data:
+        raise ConfigError(
+            f"{path}: empty; a reload does not reset every setting to the built-in defaults "
+            "(restart to start from them)"
+        )
     try:
         return from_mapping(OmnidConfig, data)
     except ConfigError as exc:
@@ -264,7 +272,7 @@ class ConfigHolder:
         previous configuration stays in force. ``check(old, new)``: a reason to refuse the new
         one (the daemon's :func:`restart_only_refusal`), or ``None``."""
         try:
-            new = load_config(self.path)
+            new = load_config(self.path, allow_empty=False)
         except ConfigError as exc:
             return self._refuse(str(exc))
         return self._check(new, check)
@@ -281,7 +289,7 @@ class ConfigHolder:
                 1, thread_name_prefix="omnid-config"
             )
         loop = asyncio.get_running_loop()
-        self._reading = loop.run_in_executor(self._executor, load_config, self.path)
+        self._reading = loop.run_in_executor(self._executor, load_config, self.path, False)
         try:
             new = await asyncio.wait_for(asyncio.shield(self._reading), timeout_s)
         except TimeoutError:

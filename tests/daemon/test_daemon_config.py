@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import time
 from pathlib import Path
@@ -207,6 +208,23 @@ def test_reload_keeps_old_config_when_new_is_invalid(tmp_path):
     p.write_text("control:\n  rate_hz: 60\n")
     assert holder.reload() == (True, "reloaded")
     assert holder.config.control.rate_hz == 60.0
+
+
+@pytest.mark.parametrize("text", ["", "\n", "# all commented out\n", "{}\n"])
+def test_a_file_emptied_before_a_reload_is_refused_not_read_as_defaults(tmp_path, text):
+    """At start an empty file is the shipped configuration; on SIGHUP an emptied one (an
+    editor's truncated save) would silently reset a tuned footprint to the defaults."""
+    p = tmp_path / "omnid.yaml"
+    p.write_text("safety:\n  footprint_width_mm: 760\n")
+    holder = ConfigHolder(p)
+    p.write_text(text)
+    ok, why = holder.reload()
+    assert not ok and "empty" in why and str(p) in why
+    assert holder.config.safety.footprint_width_mm == 760.0
+    ok, why = asyncio.run(holder.reload_off_loop(2.0))
+    assert not ok and "empty" in why
+    holder.close()
+    assert load_config(p).safety.footprint_width_mm != 760.0  # at start: the defaults
 
 
 def test_missing_file_is_one_line_error(tmp_path):
