@@ -255,6 +255,10 @@ class Daemon:
         self._last_cycle_s = time.monotonic()
         self._link_was_ok: bool | None = None  # None: not yet heard (start-up is not a loss)
         self._reload_task: asyncio.Task[bool] | None = None
+        # a SIGHUP before the daemon is up (READY=1) is kept and served once it is: a reload
+        # then would report READY too early, and before the handler a SIGHUP killed the process
+        self.reload_pending = False
+        self._up = False
         self.capture_cycle = CaptureCycle(
             CaptureSettings.from_config(holder.config), start_s=time.monotonic()
         )
@@ -798,6 +802,10 @@ class Daemon:
 
     # ---- life cycle ---------------------------------------------------------------------
     def _on_sighup(self) -> None:
+        if not self._up:
+            log.info("SIGHUP while starting: the configuration is reloaded once running")
+            self.reload_pending = True
+            return
         if self._reload_task is not None and not self._reload_task.done():
             log.warning("SIGHUP ignored: a configuration reload is still running")
             return
@@ -904,6 +912,10 @@ class Daemon:
             if self.config.perception.enabled:
                 self._tasks.append(asyncio.create_task(self.perception_loop(), name="perception"))
             self.notifier.ready("running")
+            self._up = True
+            if self.reload_pending:
+                self.reload_pending = False
+                self._on_sighup()
             log.info("omnid running at %.0f Hz", self.config.control.rate_hz)
             await self._stop.wait()
             for t in self._tasks:
@@ -957,6 +969,10 @@ def main(
     ``view``: the command line's ``--record FILE`` / ``--view HOST:PORT`` (over ``record.*``)."""
     from omnid.daemon.preflight import preflight
 
+    # from here a SIGHUP (a reload asked while the configuration, the ports and the calibration
+    # are still being read) is noted, not the default action's end of the process
+    early_hup: list[int] = []
+    signal.signal(signal.SIGHUP, lambda signum, frame: early_hup.append(signum))
     holder = ConfigHolder(config_path)
     if record or view:
         import dataclasses
@@ -973,6 +989,12 @@ def main(
 
     async def amain() -> int:
         d = Daemon(holder, calibration=checks.calibration, inject_faults=inject_faults)
+        d.reload_pending = bool(early_hup)
+
+        def noted(signum: int, frame: object) -> None:
+            d.reload_pending = True
+
+        signal.signal(signal.SIGHUP, noted)  # until run() puts the loop's handler in
         daemon_ref.append(d)
         return await d.run()
 

@@ -78,7 +78,9 @@ class TeleopSettings(Settings):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        require(self.mode & 0o007 == 0, "mode", "must not grant access to others (e.g. 0o660)")
+        require(
+            self.mode & 0o007 == 0, "mode", "must not grant access to others (e.g. 0660, octal)"
+        )
 
 
 class TeleopServer:
