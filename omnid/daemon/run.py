@@ -668,6 +668,7 @@ class Daemon:
         from omnid.errors import DeviceError, DeviceTimeout
 
         camera: Any = None
+        closed: Any = None  # the source closed last: a reopened one continues its frames
         flushed = -1
         backoff = 0.05
         # cv2 opens and configures the devices synchronously (a USB camera negotiating its
@@ -689,8 +690,8 @@ class Daemon:
                         self._camera_wait_s = time.monotonic()  # camera health: awaited since
                         self._arm_camera_timer()
                     if self._camera_reset and camera is not None:
-                        await camera.close()
-                        camera = None
+                        closed, camera = camera, None
+                        await closed.close()
                     self._camera_reset = False
                     if camera is None:
                         if opening is None:
@@ -708,6 +709,7 @@ class Daemon:
                                 opening = None  # the open failed: a fresh one next time
                             raise
                         opening = None
+                        camera.reopens(closed)  # still frozen after the reopen: refused
                     if cycle.flush_needed and flushed != cycle.frame_requests:
                         await camera.flush()
                         flushed = cycle.frame_requests
@@ -721,9 +723,9 @@ class Daemon:
                         log.debug("camera reader exception", exc_info=True)
                     self._capture_wake.set()
                     if camera is not None:
+                        closed, camera = camera, None
                         with contextlib.suppress(Exception):
-                            await camera.close()
-                        camera = None
+                            await closed.close()
                     await self._wait_any([], backoff)
                     backoff = min(2 * backoff, 1.0)
                     continue

@@ -179,6 +179,13 @@ class StereoFrameSource:
                     "frozen (a stuck driver) or nothing in view (lens covered, dark or saturated)"
                 )
 
+    def reopens(self, before: StereoFrameSource | None) -> None:
+        """This source opens again the device ``before`` read (closed after a failure): its
+        first frame is compared with the last one ``before`` delivered or refused, so that a
+        device still stuck on its buffer stays frozen across the reopen."""
+        if before is not None and self.detects_frozen and self._previous is None:
+            self._previous = before._previous
+
     async def flush(self) -> None:
         """Make the next :meth:`read_pair` return frames captured after this call."""
         if self._closed:

@@ -200,3 +200,59 @@ def test_a_camera_reader_that_dies_counts_as_lost_cameras_until_it_reads_again(
 
     assert asyncio.run(go())
     assert d.stats.perception_errors == 1 and runs == 1  # stopped during the backoff
+
+
+def test_a_frozen_camera_stays_refused_after_the_reader_opens_it_again(
+    tmp_path, random_installations
+):
+    """A device that delivers the same frame twice is refused as frozen, and the reader closes
+    and opens it again. The reopened source had forgotten the frame it refused: its first frame
+    — the same stuck image — was taken as a fresh view (into the capture cycle, the speed cap
+    lifted), then refused again, reopened, taken again: a frozen camera fed perception and
+    counted as delivering every few tens of ms. After the first refusal no frame of a still
+    frozen camera may reach the cycle, and the cameras stay lost."""
+    from omnid.sim.frame_server import FrameServer
+
+    sock = str(tmp_path / "frames.sock")
+    cfg = tmp_path / "omnid.yaml"
+    calib = tmp_path / "calibration.yaml"
+    random_installations[0][1].save(calib)  # perception on (camera health judged); no worker
+    cfg.write_text(
+        f"camera:\n  url: sim+unix://{sock}\nperception:\n  calibration_path: {calib}\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+    rng = np.random.default_rng(5)
+    scene = rng.integers(0, 200, (24, 32)).astype(np.uint8)
+    stuck = {"on": False}
+
+    def provider():
+        noisy = (scene + rng.integers(0, 3, scene.shape)).astype(np.uint8)
+        return time.monotonic(), noisy, scene if stuck["on"] else noisy.copy()
+
+    async def go():
+        d = Daemon(ConfigHolder(cfg), notifier=None)
+        cycle = CaptureCycle(CaptureSettings(policy="stream"), start_s=time.monotonic())
+        reader = asyncio.create_task(d._frame_reader(cycle))
+        t_end = time.monotonic() + 2.0
+        while d.stats.frames_read < 3 and time.monotonic() < t_end:
+            await asyncio.sleep(0.005)
+        stuck["on"] = True
+        t_end = time.monotonic() + 3.0
+        while cycle.failures == 0 and time.monotonic() < t_end:  # the first refusal
+            cycle.poll(time.monotonic())
+            await asyncio.sleep(0.005)
+        frames_at_refusal = d.stats.frames_read
+        ok = []
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:
+            await asyncio.sleep(0.005)
+            ok.append(d._camera_ok(time.monotonic()))
+        d._stop.set()
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(reader, 2.0)
+        return d.stats.frames_read - frames_at_refusal, ok
+
+    with FrameServer(sock, provider, frame_period_s=None):
+        taken, ok = asyncio.run(go())
+    assert taken == 0, f"{taken} frames of a frozen camera taken after it was refused"
+    assert not any(ok), "a frozen camera counted as delivering"
