@@ -156,16 +156,20 @@ class LoopStats:
         return out
 
 
-def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
+def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float, own_clock: bool = False) -> float:
     """Capture time of a frame pair on this process's monotonic clock.
 
     V4L2 sources stamp pairs with the drivers' monotonic buffer timestamps, or
     ``time.monotonic()`` at the grab (inside the read: :func:`omnid.devices.camera.pair_time`); the
     simulator's frame server stamps its own virtual clock, which is not ours. A stamp outside
     the read's own window (or up to a driver queue's ``MAX_BUFFER_AGE_S`` before it) is
-    therefore replaced by the window's midpoint.
+    therefore replaced by the window's midpoint — unless the source is known to stamp on our
+    clock (``own_clock``: an earlier stamp of it was inside the window), when an older stamp
+    is an old frame and is kept: dated at the read, a stale view would look fresh.
     """
     if t_req_s - MAX_BUFFER_AGE_S <= t_cam_s <= t_got_s + 0.01:
+        return t_cam_s
+    if own_clock and math.isfinite(t_cam_s) and t_cam_s < t_req_s:
         return t_cam_s
     return 0.5 * (t_req_s + t_got_s)
 
@@ -272,6 +276,7 @@ class Daemon:
         self._injected: str | None = None  # a fault to inject at the next cycle
         self._camera_wait_s: float | None = None  # since when a frame pair is awaited
         self._camera_failed = False
+        self._camera_clock_ours = False  # a camera stamp was on our monotonic clock
         self._camera_timer: asyncio.TimerHandle | None = None  # fires at the silence limit
         self._joystick_live = False
 
@@ -529,7 +534,10 @@ class Daemon:
     async def _read(self, camera: Any) -> Frame:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
-        t = frame_time(float(t_cam), t_req, time.monotonic())
+        t_got = time.monotonic()
+        t = frame_time(float(t_cam), t_req, t_got, self._camera_clock_ours)
+        if t == t_cam and t_req - MAX_BUFFER_AGE_S <= t <= t_got + 0.01:
+            self._camera_clock_ours = True  # the camera stamps on our clock (as long as we run)
         return Frame(t - self.config.camera.frame_latency_s, (img1, img2))
 
     def _perception_error(self, what: str, exc: BaseException | str) -> None:

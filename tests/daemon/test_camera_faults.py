@@ -256,3 +256,43 @@ def test_a_frozen_camera_stays_refused_after_the_reader_opens_it_again(
         taken, ok = asyncio.run(go())
     assert taken == 0, f"{taken} frames of a frozen camera taken after it was refused"
     assert not any(ok), "a frozen camera counted as delivering"
+
+
+def test_a_frame_stamped_long_ago_on_our_clock_is_not_dated_now(tmp_path):
+    """A camera whose stamps are on the daemon's monotonic clock (the frame server's, a V4L2
+    driver's) and that then delivers a frame captured 1.5 s ago — a backlog after the reader
+    stood still, a camera pipeline falling behind — had that frame dated at the read (a stamp
+    older than the driver's 1 s queue was taken for a foreign clock): a 1.5 s old view entered
+    as fresh, placed at the chair's pose of now. Once the source has stamped on our clock, an
+    old stamp is an old frame and keeps its time."""
+    from omnid.devices.camera import open_camera
+    from omnid.sim.frame_server import FrameServer
+
+    sock = str(tmp_path / "frames.sock")
+    cfg = tmp_path / "omnid.yaml"
+    cfg.write_text(
+        f"perception:\n  enabled: false\ncamera:\n  url: sim+unix://{sock}\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+    rng = np.random.default_rng(6)
+    lag = {"s": 0.0}
+
+    def provider():
+        img = rng.integers(0, 256, (8, 8), dtype=np.uint8)
+        return time.monotonic() - lag["s"], img, img.copy()
+
+    async def go():
+        d = Daemon(ConfigHolder(cfg), notifier=None)
+        camera = open_camera(d.config.camera)
+        try:
+            for _ in range(3):  # on time: the source stamps on our clock
+                await d._read(camera)
+            lag["s"] = 1.5
+            frame = await d._read(camera)
+            return time.monotonic() - frame.t_s
+        finally:
+            await camera.close()
+
+    with FrameServer(sock, provider, frame_period_s=None):
+        age = asyncio.run(go())
+    assert age >= 1.45, f"a frame captured 1.5 s ago dated {age:.3f} s old"
