@@ -538,7 +538,9 @@ class Daemon:
         t = frame_time(float(t_cam), t_req, t_got, self._camera_clock_ours)
         if t == t_cam and t_req - MAX_BUFFER_AGE_S <= t <= t_got + 0.01:
             self._camera_clock_ours = True  # the camera stamps on our clock (as long as we run)
-        return Frame(t - self.config.camera.frame_latency_s, (img1, img2))
+        # captured before it was read: a negative latency (a driver stamping the exposure's
+        # start) or a stamp just after the read must not date it in the future (fresher)
+        return Frame(min(t - self.config.camera.frame_latency_s, t_got), (img1, img2))
 
     def _perception_error(self, what: str, exc: BaseException | str) -> None:
         self.stats.perception_errors += 1

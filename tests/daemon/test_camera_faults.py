@@ -296,3 +296,42 @@ def test_a_frame_stamped_long_ago_on_our_clock_is_not_dated_now(tmp_path):
     with FrameServer(sock, provider, frame_period_s=None):
         age = asyncio.run(go())
     assert age >= 1.45, f"a frame captured 1.5 s ago dated {age:.3f} s old"
+
+
+def test_a_frame_is_never_dated_after_the_read_that_returned_it(tmp_path):
+    """``camera.frame_latency_s`` may be negative (a driver stamping the start of the exposure,
+    its middle comes later) down to -0.5 s; subtracted from the stamp it dated a frame up to
+    0.5 s after the read returned it — in the future, so that its cloud counted as fresh for
+    that much longer than ``safety.perception_timeout_s``. A frame was captured before it was
+    read: its time is at most the end of the read."""
+    from omnid.devices.camera import open_camera
+    from omnid.sim.frame_server import FrameServer
+
+    sock = str(tmp_path / "frames.sock")
+    cfg = tmp_path / "omnid.yaml"
+    cfg.write_text(
+        f"perception:\n  enabled: false\ncamera:\n  url: sim+unix://{sock}\n"
+        "  frame_latency_s: -0.4\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+    rng = np.random.default_rng(7)
+
+    def provider():
+        img = rng.integers(0, 256, (8, 8), dtype=np.uint8)
+        return time.monotonic(), img, img.copy()
+
+    async def go():
+        d = Daemon(ConfigHolder(cfg), notifier=None)
+        camera = open_camera(d.config.camera)
+        try:
+            ahead = []
+            for _ in range(3):
+                frame = await d._read(camera)
+                ahead.append(frame.t_s - time.monotonic())
+            return max(ahead)
+        finally:
+            await camera.close()
+
+    with FrameServer(sock, provider, frame_period_s=None):
+        ahead = asyncio.run(go())
+    assert ahead <= 0.0, f"a frame dated {ahead:.3f} s in the future"
