@@ -158,16 +158,20 @@ class LoopStats:
         return out
 
 
-def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float) -> float:
+def frame_time(t_cam_s: float, t_req_s: float, t_got_s: float, own_clock: bool = False) -> float:
     """Capture time of a frame pair on this process's monotonic clock.
 
     V4L2 sources stamp pairs with the drivers' monotonic buffer timestamps, or
     ``time.monotonic()`` at the grab (inside the read: :func:`omnid.devices.camera.pair_time`); the
     simulator's frame server stamps its own virtual clock, which is not ours. A stamp outside
     the read's own window (or up to a driver queue's ``MAX_BUFFER_AGE_S`` before it) is
-    therefore replaced by the window's midpoint.
+    therefore replaced by the window's midpoint — unless the source is known to stamp on our
+    clock (``own_clock``: an earlier stamp of it was inside the window), when an older stamp
+    is an old frame and is kept: dated at the read, a stale view would look fresh.
     """
     if t_req_s - MAX_BUFFER_AGE_S <= t_cam_s <= t_got_s + 0.01:
+        return t_cam_s
+    if own_clock and math.isfinite(t_cam_s) and t_cam_s < t_req_s:
         return t_cam_s
     return 0.5 * (t_req_s + t_got_s)
 
@@ -278,6 +282,7 @@ class Daemon:
         self._injected: str | None = None  # a fault to inject at the next cycle
         self._camera_wait_s: float | None = None  # since when a frame pair is awaited
         self._camera_failed = False
+        self._camera_clock_ours = False  # a camera stamp was on our monotonic clock
         self._camera_timer: asyncio.TimerHandle | None = None  # fires at the silence limit
         self._joystick_live = False
 
@@ -535,8 +540,13 @@ class Daemon:
     async def _read(self, camera: Any) -> Frame:
         t_req = time.monotonic()
         img1, img2, t_cam = await camera.read_pair()
-        t = frame_time(float(t_cam), t_req, time.monotonic())
-        return Frame(t - self.config.camera.frame_latency_s, (img1, img2))
+        t_got = time.monotonic()
+        t = frame_time(float(t_cam), t_req, t_got, self._camera_clock_ours)
+        if t == t_cam and t_req - MAX_BUFFER_AGE_S <= t <= t_got + 0.01:
+            self._camera_clock_ours = True  # the camera stamps on our clock (as long as we run)
+        # captured before it was read: a negative latency (a driver stamping the exposure's
+        # start) or a stamp just after the read must not date it in the future (fresher)
+        return Frame(min(t - self.config.camera.frame_latency_s, t_got), (img1, img2))
 
     def _perception_error(self, what: str, exc: BaseException | str) -> None:
         self.stats.perception_errors += 1
@@ -674,6 +684,7 @@ class Daemon:
         from omnid.errors import DeviceError, DeviceTimeout
 
         camera: Any = None
+        closed: Any = None  # the source closed last: a reopened one continues its frames
         flushed = -1
         backoff = 0.05
         # cv2 opens and configures the devices synchronously (a USB camera negotiating its
@@ -695,8 +706,8 @@ class Daemon:
                         self._camera_wait_s = time.monotonic()  # camera health: awaited since
                         self._arm_camera_timer()
                     if self._camera_reset and camera is not None:
-                        await camera.close()
-                        camera = None
+                        closed, camera = camera, None
+                        await closed.close()
                     self._camera_reset = False
                     if camera is None:
                         if opening is None:
@@ -714,6 +725,7 @@ class Daemon:
                                 opening = None  # the open failed: a fresh one next time
                             raise
                         opening = None
+                        camera.reopens(closed)  # still frozen after the reopen: refused
                     if cycle.flush_needed and flushed != cycle.frame_requests:
                         await camera.flush()
                         flushed = cycle.frame_requests
@@ -727,9 +739,9 @@ class Daemon:
                         log.debug("camera reader exception", exc_info=True)
                     self._capture_wake.set()
                     if camera is not None:
+                        closed, camera = camera, None
                         with contextlib.suppress(Exception):
-                            await camera.close()
-                        camera = None
+                            await closed.close()
                     await self._wait_any([], backoff)
                     backoff = min(2 * backoff, 1.0)
                     continue

@@ -179,6 +179,13 @@ class StereoFrameSource:
                     "frozen (a stuck driver) or nothing in view (lens covered, dark or saturated)"
                 )
 
+    def reopens(self, before: StereoFrameSource | None) -> None:
+        """This source opens again the device ``before`` read (closed after a failure): its
+        first frame is compared with the last one ``before`` delivered or refused, so that a
+        device still stuck on its buffer stays frozen across the reopen."""
+        if before is not None and self.detects_frozen and self._previous is None:
+            self._previous = before._previous
+
     async def flush(self) -> None:
         """Make the next :meth:`read_pair` return frames captured after this call."""
         if self._closed:
@@ -246,13 +253,18 @@ MAX_BUFFER_AGE_S = 1.0
 PAIR_SPREAD_WARN_S = 0.004
 
 
-def pair_time(stamps_ms: list[float], t_before_s: float, t_grabbed_s: float) -> float:
+def pair_time(
+    stamps_ms: list[float], t_before_s: float, t_grabbed_s: float, monotonic: bool = False
+) -> float:
     """Capture time (monotonic s) of a frame pair from its buffers' timestamps ``stamps_ms``
     (``CAP_PROP_POS_MSEC``), read between ``t_before_s`` and ``t_grabbed_s``: their mean when
     every one lies between ``MAX_BUFFER_AGE_S`` before the read and its end (a monotonic
-    stamp), else ``t_grabbed_s`` (0 before the first frame, a wall-clock or device clock)."""
+    stamp), else ``t_grabbed_s`` (0 before the first frame, a wall-clock or device clock).
+    With ``monotonic`` (the drivers' stamps have been monotonic) an older stamp is an old
+    buffer — one the driver held while nobody read — and is kept: stamped at the grab, a
+    stale frame would look fresh."""
     t = [float(ms) / 1000.0 for ms in stamps_ms]
-    lo = t_before_s - MAX_BUFFER_AGE_S
+    lo = -math.inf if monotonic else t_before_s - MAX_BUFFER_AGE_S
     if t and all(math.isfinite(x) and lo <= x <= t_grabbed_s for x in t):
         return sum(t) / len(t)
     return t_grabbed_s
@@ -332,7 +344,8 @@ class VideoCaptureSource(StereoFrameSource):
         if self._device:  # a file's "timestamp" is its position in the video
             pos = self._cv2.CAP_PROP_POS_MSEC
             stamps = [cap.get(pos) for cap in self._caps]
-            t_grabbed, t_s = t_s, pair_time(stamps, t_before, t_s)
+            t_grabbed = t_s
+            t_s = pair_time(stamps, t_before, t_s, bool(self._stamped_by_drivers))
             self._note_stamps(stamps, t_s != t_grabbed)
         imgs = []
         for i, cap in enumerate(self._caps):

@@ -200,3 +200,138 @@ def test_a_camera_reader_that_dies_counts_as_lost_cameras_until_it_reads_again(
 
     assert asyncio.run(go())
     assert d.stats.perception_errors == 1 and runs == 1  # stopped during the backoff
+
+
+def test_a_frozen_camera_stays_refused_after_the_reader_opens_it_again(
+    tmp_path, random_installations
+):
+    """A device that delivers the same frame twice is refused as frozen, and the reader closes
+    and opens it again. The reopened source had forgotten the frame it refused: its first frame
+    — the same stuck image — was taken as a fresh view (into the capture cycle, the speed cap
+    lifted), then refused again, reopened, taken again: a frozen camera fed perception and
+    counted as delivering every few tens of ms. After the first refusal no frame of a still
+    frozen camera may reach the cycle, and the cameras stay lost."""
+    from omnid.sim.frame_server import FrameServer
+
+    sock = str(tmp_path / "frames.sock")
+    cfg = tmp_path / "omnid.yaml"
+    calib = tmp_path / "calibration.yaml"
+    random_installations[0][1].save(calib)  # perception on (camera health judged); no worker
+    cfg.write_text(
+        f"camera:\n  url: sim+unix://{sock}\nperception:\n  calibration_path: {calib}\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+    rng = np.random.default_rng(5)
+    scene = rng.integers(0, 200, (24, 32)).astype(np.uint8)
+    stuck = {"on": False}
+
+    def provider():
+        noisy = (scene + rng.integers(0, 3, scene.shape)).astype(np.uint8)
+        return time.monotonic(), noisy, scene if stuck["on"] else noisy.copy()
+
+    async def go():
+        d = Daemon(ConfigHolder(cfg), notifier=None)
+        cycle = CaptureCycle(CaptureSettings(policy="stream"), start_s=time.monotonic())
+        reader = asyncio.create_task(d._frame_reader(cycle))
+        t_end = time.monotonic() + 2.0
+        while d.stats.frames_read < 3 and time.monotonic() < t_end:
+            await asyncio.sleep(0.005)
+        stuck["on"] = True
+        t_end = time.monotonic() + 3.0
+        while cycle.failures == 0 and time.monotonic() < t_end:  # the first refusal
+            cycle.poll(time.monotonic())
+            await asyncio.sleep(0.005)
+        frames_at_refusal = d.stats.frames_read
+        ok = []
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:
+            await asyncio.sleep(0.005)
+            ok.append(d._camera_ok(time.monotonic()))
+        d._stop.set()
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(reader, 2.0)
+        return d.stats.frames_read - frames_at_refusal, ok
+
+    with FrameServer(sock, provider, frame_period_s=None):
+        taken, ok = asyncio.run(go())
+    assert taken == 0, f"{taken} frames of a frozen camera taken after it was refused"
+    assert not any(ok), "a frozen camera counted as delivering"
+
+
+def test_a_frame_stamped_long_ago_on_our_clock_is_not_dated_now(tmp_path):
+    """A camera whose stamps are on the daemon's monotonic clock (the frame server's, a V4L2
+    driver's) and that then delivers a frame captured 1.5 s ago — a backlog after the reader
+    stood still, a camera pipeline falling behind — had that frame dated at the read (a stamp
+    older than the driver's 1 s queue was taken for a foreign clock): a 1.5 s old view entered
+    as fresh, placed at the chair's pose of now. Once the source has stamped on our clock, an
+    old stamp is an old frame and keeps its time."""
+    from omnid.devices.camera import open_camera
+    from omnid.sim.frame_server import FrameServer
+
+    sock = str(tmp_path / "frames.sock")
+    cfg = tmp_path / "omnid.yaml"
+    cfg.write_text(
+        f"perception:\n  enabled: false\ncamera:\n  url: sim+unix://{sock}\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+    rng = np.random.default_rng(6)
+    lag = {"s": 0.0}
+
+    def provider():
+        img = rng.integers(0, 256, (8, 8), dtype=np.uint8)
+        return time.monotonic() - lag["s"], img, img.copy()
+
+    async def go():
+        d = Daemon(ConfigHolder(cfg), notifier=None)
+        camera = open_camera(d.config.camera)
+        try:
+            for _ in range(3):  # on time: the source stamps on our clock
+                await d._read(camera)
+            lag["s"] = 1.5
+            frame = await d._read(camera)
+            return time.monotonic() - frame.t_s
+        finally:
+            await camera.close()
+
+    with FrameServer(sock, provider, frame_period_s=None):
+        age = asyncio.run(go())
+    assert age >= 1.45, f"a frame captured 1.5 s ago dated {age:.3f} s old"
+
+
+def test_a_frame_is_never_dated_after_the_read_that_returned_it(tmp_path):
+    """``camera.frame_latency_s`` may be negative (a driver stamping the start of the exposure,
+    its middle comes later) down to -0.5 s; subtracted from the stamp it dated a frame up to
+    0.5 s after the read returned it — in the future, so that its cloud counted as fresh for
+    that much longer than ``safety.perception_timeout_s``. A frame was captured before it was
+    read: its time is at most the end of the read."""
+    from omnid.devices.camera import open_camera
+    from omnid.sim.frame_server import FrameServer
+
+    sock = str(tmp_path / "frames.sock")
+    cfg = tmp_path / "omnid.yaml"
+    cfg.write_text(
+        f"perception:\n  enabled: false\ncamera:\n  url: sim+unix://{sock}\n"
+        "  frame_latency_s: -0.4\n"
+        "rider:\n  tilt:\n    enabled: false\n  joystick:\n    enabled: false\n"
+    )
+    rng = np.random.default_rng(7)
+
+    def provider():
+        img = rng.integers(0, 256, (8, 8), dtype=np.uint8)
+        return time.monotonic(), img, img.copy()
+
+    async def go():
+        d = Daemon(ConfigHolder(cfg), notifier=None)
+        camera = open_camera(d.config.camera)
+        try:
+            ahead = []
+            for _ in range(3):
+                frame = await d._read(camera)
+                ahead.append(frame.t_s - time.monotonic())
+            return max(ahead)
+        finally:
+            await camera.close()
+
+    with FrameServer(sock, provider, frame_period_s=None):
+        ahead = asyncio.run(go())
+    assert ahead <= 0.0, f"a frame dated {ahead:.3f} s in the future"

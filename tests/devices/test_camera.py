@@ -349,6 +349,11 @@ def test_pair_time_trusts_the_drivers_monotonic_stamps_and_nothing_else():
         [],
     ):
         assert pair_time(stamps, before, grabbed) == grabbed, stamps
+    # once the drivers' stamps were monotonic, an older one is a buffer held while nobody read:
+    # it keeps its time (at the grab, a stale frame would look fresh)
+    stale = (before - 2.5) * 1000.0
+    assert pair_time([stale, stale], before, grabbed, monotonic=True) == pytest.approx(before - 2.5)
+    assert pair_time([499_990.0, 500_100.0], before, grabbed, monotonic=True) == grabbed
 
 
 def test_a_pair_stamped_apart_is_reported_as_unsynchronised_cameras(tmp_path, caplog):
