@@ -773,7 +773,12 @@ class Daemon:
                 if job.masks:
                     self.stats.note(self.stats.mask_to_base_s, job.t_s - job.masks[0].t_s)
                 if self.recording is not None:
-                    self.recording.on_capture(job.stereo_capture())  # rate-limited
+                    try:
+                        self.recording.on_capture(job.stereo_capture())  # rate-limited
+                    except Exception as exc:  # the recording's bug: the cloud is still made
+                        self._throttle.error(
+                            "record", "recording a capture failed (%r); perception goes on", exc
+                        )
                 motions = job.mask_motions if p.motion_compensation else ()
                 motions = tuple(motions) or (None,) * len(job.masks)
                 w0 = time.monotonic()

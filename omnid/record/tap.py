@@ -83,42 +83,55 @@ class RecordingCore:
     def _failure(self, exc: BaseException) -> None:
         if not self._failed:
             object.__setattr__(self, "_failed", True)
-            log.error("recording a cycle failed (%r); the chair is not affected", exc)
+            log.error("recording failed (%r); the chair is not affected", exc)
+
+    def _put(self, topic: str, t_s: float, payload: Any) -> None:
+        """Record one message; a recording that fails costs the recording, never the input,
+        the cloud or the capture it was handed with (the chair drives on)."""
+        try:
+            self._rec.put(topic, t_s, payload)
+        except Exception as exc:
+            self._failure(exc)
 
     # -- inputs ----------------------------------------------------------------------------
     def on_tilt(self, reading: Any) -> None:
         self._core.on_tilt(reading)
-        self._rec.put("tilt", reading.timestamp_s, (self._next(), reading))
+        self._put("tilt", reading.timestamp_s, (self._next(), reading))
 
     def on_joystick(self, reading: Any) -> None:
         self._core.on_joystick(reading)
-        self._rec.put("joystick", reading.timestamp_s, (self._next(), reading))
+        self._put("joystick", reading.timestamp_s, (self._next(), reading))
 
     def on_key(self, command: str, now_s: float) -> None:
         self._core.on_key(command, now_s)
-        self._rec.put("key", now_s, (self._next(), command))
+        self._put("key", now_s, (self._next(), command))
 
     def on_input_lost(self, source: str, now_s: float) -> None:
         self._core.on_input_lost(source, now_s)
-        self._rec.put("input_lost", now_s, (self._next(), source))
+        self._put("input_lost", now_s, (self._next(), source))
 
     def on_status(self, status: Any) -> None:
         self._core.on_status(status)
-        self._rec.put("status", status.timestamp_s, (self._next(), status))
+        self._put("status", status.timestamp_s, (self._next(), status))
 
     def on_perception(self, cloud: Any, capture_time_s: float) -> None:
         self._core.on_perception(cloud, capture_time_s)
-        self._rec.put("cloud", self._rec.clock(), (self._next(), cloud, capture_time_s))
+        self._put("cloud", self._rec.clock(), (self._next(), cloud, capture_time_s))
 
     def on_capture(self, capture: Any) -> None:
         """A stereo capture as taken (recorded at most every ``record.capture_period_s``)."""
-        if self._rec.wants_capture(capture.timestamp_s):
-            self._rec.put("capture", capture.timestamp_s, capture)
+        try:
+            wanted = self._rec.wants_capture(capture.timestamp_s)
+        except Exception as exc:
+            self._failure(exc)
+            return
+        if wanted:
+            self._put("capture", capture.timestamp_s, capture)
 
     def on_fault(self, name: str, detail: str, now_s: float | None = None) -> None:
         """An event the core does not see (a perception cycle failed, a link lost)."""
         t = self._rec.clock() if now_s is None else now_s
-        self._rec.put("fault", t, (name, "event", detail))
+        self._put("fault", t, (name, "event", detail))
 
     # -- the cycle -------------------------------------------------------------------------
     def step(self, now_s: float) -> Any:

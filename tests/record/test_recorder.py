@@ -163,3 +163,33 @@ def test_recording_does_not_change_the_ride_even_when_it_fails(tmp_path: Path, c
     assert np.array_equal(plain.commands, failed.commands)
     assert plain.distance_mm > 100.0
     assert sum("recording stopped" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_recorder_that_raises_costs_the_recording_not_the_input(tmp_path: Path, caplog) -> None:
+    """A bug in the recorder (its ``put`` raising) after the core took an input used to raise
+    into the caller: the tilt link's callback, the perceiver (every cloud lost with its
+    capture). The input reaches the core; the recording says once that it failed."""
+    from omnid.daemon.config import OmnidConfig
+    from omnid.daemon.core import ControlCore
+    from omnid.devices.tilt import TiltReading
+    from omnid.record.tap import RecordingCore
+
+    class BrokenRecorder(Recorder):
+        def put(self, topic, t_s, payload):  # type: ignore[no-untyped-def]
+            raise RuntimeError(f"a bug recording {topic}")
+
+        def wants_capture(self, t_s):  # type: ignore[no-untyped-def]
+            raise RuntimeError("a bug in the capture rate limit")
+
+    rec = BrokenRecorder(RecordSettings(path=str(tmp_path / "r.mcap")), {}, threaded=False)
+    core = ControlCore(OmnidConfig())
+    tap = RecordingCore(core, rec)
+    tap.on_tilt(TiltReading(1.0, -2.0, 0.5))
+    tap.on_key("forward", 0.5)
+    tap.on_input_lost("joystick", 0.5)
+    tap.on_fault("camera", "lost", 0.5)
+    tap.on_capture(argparse.Namespace(timestamp_s=0.5))
+    tap.step(0.52)
+    assert core.mux.tilt.last_timestamp_s == 0.5  # the reading reached the core
+    assert core.mux.input_time_s("keyboard") == 0.5
+    assert sum("recording failed" in r.getMessage() for r in caplog.records) == 1
