@@ -585,6 +585,10 @@ class Daemon:
             for w in waits:
                 w.cancel()
 
+    async def _close_worker(self) -> None:
+        if self.worker is not None:
+            await self.worker.close()
+
     async def perception_loop(self) -> None:
         """The capture cycle's driver: it polls the cycle when a reply, a frame or one of the
         cycle's own deadlines comes, puts its laser request on the wire at once (an extra
@@ -596,6 +600,11 @@ class Daemon:
         cfg = self.config
         p = cfg.perception
         method, settings = pipeline_arguments(cfg)
+        if self.worker is None:
+            self._closers.append(self._close_worker)  # the newest worker, at shutdown
+        else:  # a restart after a failed start: that worker goes first
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.worker.close(), 5.0)
         self.worker = PerceptionWorker(
             self.calibration,
             method,
@@ -604,7 +613,6 @@ class Daemon:
             nice=p.worker_nice,
             rig_x_offset_mm=p.rig_x_offset_mm,
         )
-        self._closers.append(self.worker.close)
         await self.worker.start()
         # the cycle starts now: its first laser request is the one the core has been sending
         cycle = self.capture_cycle = CaptureCycle(
@@ -927,7 +935,12 @@ class Daemon:
             control.add_done_callback(self._control_loop_done)
             self._tasks.append(control)
             if self.config.perception.enabled:
-                self._tasks.append(asyncio.create_task(self.perception_loop(), name="perception"))
+                # supervised as its helpers are: a failure setting it up (the worker process
+                # not starting) is logged at once and retried, not found at shutdown
+                perception = run_supervised(
+                    "perception", self.perception_loop, self._stop.is_set, self._perception_error
+                )
+                self._tasks.append(asyncio.create_task(perception, name="perception"))
             self.notifier.ready("running")
             self._up = True
             if self.reload_pending:
