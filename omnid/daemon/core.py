@@ -192,6 +192,10 @@ class ControlCore:
         self.capturing = False  # True while mask/base frames are being taken
         self.halt = False  # shutting down: stop at the emergency rate whatever the rider asks
         self.status: StatusSample | None = None
+        # stopping fault bits of every reply since the last cycle: WATCHDOG and STALE_COMMAND
+        # come in one reply only, and two replies between cycles (an urgent frame and the
+        # regular one) would otherwise let the second hide the first
+        self._unit_faults_since_step = 0
         self.perception_time_s: float | None = None
         # captures in a row did not fit the calibration (the rig was knocked): no forward motion
         self.calibration_lost = False
@@ -239,6 +243,7 @@ class ControlCore:
         """A control-unit reply: odometry, the map's motion, the wheel speed estimate."""
         prev = self.status
         self.status = status
+        self._unit_faults_since_step |= int(status.faults) & STOPPING_FAULTS
         if prev is not None and status.timestamp_s < prev.timestamp_s:
             return  # out of order: keep time monotonic
         # the duty the unit says it applies from now on, not the one the core asked for: a unit
@@ -495,13 +500,16 @@ class ControlCore:
         for name in lost:  # even in a cycle that stops for another fault (a silent unit):
             self.arming.on_lost(name)  # a reconnect must be seen at rest before it drives
         st = self.status
+        unit_faults, self._unit_faults_since_step = self._unit_faults_since_step, 0
+        if st is not None:
+            unit_faults |= int(st.faults) & STOPPING_FAULTS  # the newest reply's, every cycle
         if (
             st is None
             or not self.link_ok
             or now_s - st.timestamp_s > cfg.control.status_timeout_s
-            or st.faults & STOPPING_FAULTS
+            or unit_faults
         ):
-            stopping = 0 if st is None else st.faults & STOPPING_FAULTS
+            stopping = unit_faults
             reason = "control_unit_fault" if stopping else "status_stale"
             code = Reason.STATUS_STALE if reason == "status_stale" else Reason.FAULT
             self._log.log(reason, "no valid control-unit status; wheels stopped", now_s)

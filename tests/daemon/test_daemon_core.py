@@ -121,6 +121,25 @@ def test_control_unit_fault_flag_stops():
     assert core.last_report.reasons == (Reason.FAULT,)
 
 
+def test_a_one_shot_fault_flag_in_a_reply_between_cycles_is_not_hidden_by_the_next():
+    """WATCHDOG and STALE_COMMAND come in one reply only; two replies between cycles (an
+    urgent frame's and the regular one's) let the second, clean, hide the first: the core
+    drove on as if the unit had never stopped its wheels."""
+    from omnid.devices.cu_codec import FAULT_STALE_COMMAND, FAULT_WATCHDOG
+
+    for flag in (FAULT_WATCHDOG, FAULT_STALE_COMMAND):
+        core, m = make_core()
+        free_map(m)
+        chair = Chair()
+        run(core, chair, 0.0, 1.5)
+        core.on_status(chair.status(1.505, faults=flag))
+        core.on_status(chair.status(1.51))  # the next reply, before the cycle
+        core.on_tilt(Tilt(-20.0, 0.0, 1.52))
+        cmd = core.step(1.52)
+        assert cmd.left_duty == 0.0 and not cmd.enable, flag
+        assert core.last_report.reasons == (Reason.FAULT,)
+
+
 def test_informational_control_unit_flags_do_not_stop():
     """RESET (first reply after power-up) and RX_ERROR (one rejected frame) are not faults."""
     from omnid.devices.cu_codec import FAULT_RESET, FAULT_RX_ERROR
