@@ -863,6 +863,7 @@ class Daemon:
         old = self.core
         new = ControlCore(self.holder.config, world_map=old.map)
         new.status, new.perception_time_s = old.status, old.perception_time_s
+        new._unit_faults_since_step = old._unit_faults_since_step  # not yet seen by a cycle
         new.odometry, new.motion.ramp.v_mm_s = old.odometry, old.motion.ramp.v_mm_s
         # the pose and clock reference go on, measured with the new motion settings (the
         # speed window); mm_per_clock and track_mm are the same (RESTART_ONLY)
