@@ -114,7 +114,9 @@ class FreshnessGate:
     def __init__(self, max_age_s: float, watchdog_ms: int = 0) -> None:
         self.max_age_s = max_age_s
         self.watchdog_ms = watchdog_ms
-        self._max_age_ms = min(255, max(1, round(max_age_s * 1000)))
+        # below the saturated age (255 = "255 ms or more"): a command older than the byte can
+        # say must fail the unit's check, not pass it as 255 <= 255
+        self._max_age_ms = min(codec.AGE_SATURATED_MS - 1, max(1, round(max_age_s * 1000)))
         self.command = WheelCommand.stop()
         self.computed_s: float | None = None
         self.cycle = 0

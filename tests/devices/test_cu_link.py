@@ -545,6 +545,21 @@ def test_gate_sends_a_command_only_while_fresh_and_zero_after_any_gap():
     assert gate.zeroed_frames == 3
 
 
+def test_a_command_older_than_the_age_byte_can_say_is_never_within_the_units_limit():
+    """With a slow link (command period up to 0.2 s: the master's limit 400 ms) a command
+    260–400 ms old goes out stamped 255 ms ("255 or more"); with the limit byte clipped to 255
+    too the unit's backstop passed it (255 <= 255)."""
+    from omnid.devices import cu_codec as codec
+
+    gate = FreshnessGate(max_age_s=0.4)
+    gate.frame(1, 0.0)
+    gate.submit(WheelCommand(0.4, 0.4, enable=True), 0.0)
+    gate.frame(2, 0.15)
+    old = gate.frame(3, 0.3)  # 300 ms old: within the master's 400 ms
+    assert old.enabled and old.age_ms == codec.AGE_SATURATED_MS
+    assert old.age_ms > old.max_age_ms  # the unit refuses it
+
+
 def test_link_zeroes_a_command_no_live_cycle_renews(emu: ControlUnitEmulator):
     """The control loop dies (no more submits) while the link task goes on: the wheels get
     zero within two command periods, from the link's frames, not from the unit's watchdog."""
