@@ -166,7 +166,7 @@ class OmnidConfig(Settings):
 
 #: What ``omnid run`` builds its links, tasks and map from at start (the control loop's period,
 #: the control-unit link, the cameras and the perception worker, the remembered map, the rider
-#: devices it opened, the capture cycle's odometry): none of these can take a new value while
+#: devices it opened, the capture cycle's odometry, the recorder and its live view): none of these can take a new value while
 #: it runs. A reload that changes one is refused as a whole, naming the key — applying the
 #: rest would leave the core on values the links, the loop or the map do not use.
 RESTART_ONLY = (
@@ -184,6 +184,7 @@ RESTART_ONLY = (
     "teleop",
     "tilt_sensor",
     "joystick_device",
+    "record",
 )
 
 
@@ -247,9 +248,14 @@ class ConfigHolder:
     limited by :func:`omnid.config.load_yaml` as well.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(
+        self, path: str | Path, adjust: Callable[[OmnidConfig], OmnidConfig] | None = None
+    ) -> None:
         self.path = Path(path)
-        self.config = load_config(self.path)
+        # the command line's overrides (``omnid run --record/--view``), applied to the file at
+        # start and at every reload alike: a reload compares like with like and keeps them
+        self._adjust = adjust or (lambda config: config)
+        self.config = self._adjust(load_config(self.path))
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._reading: asyncio.Future[OmnidConfig] | None = None
 
@@ -264,6 +270,7 @@ class ConfigHolder:
         return False, why
 
     def _check(self, new: OmnidConfig, check: Check | None) -> tuple[bool, str]:
+        new = self._adjust(new)
         why = None if check is None else check(self.config, new)
         return self._refuse(f"{self.path}: {why}") if why else self._accept(new)
 

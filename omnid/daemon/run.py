@@ -1004,14 +1004,17 @@ def main(
     # are still being read) is noted, not the default action's end of the process
     early_hup: list[int] = []
     signal.signal(signal.SIGHUP, lambda signum, frame: early_hup.append(signum))
-    holder = ConfigHolder(config_path)
+    overrides: Callable[[OmnidConfig], OmnidConfig] | None = None
     if record or view:
         import dataclasses
 
         from omnid.record.session import with_overrides
 
-        cfg = holder.config
-        holder.config = dataclasses.replace(cfg, record=with_overrides(cfg.record, record, view))
+        def with_command_line(cfg: OmnidConfig) -> OmnidConfig:
+            return dataclasses.replace(cfg, record=with_overrides(cfg.record, record, view))
+
+        overrides = with_command_line
+    holder = ConfigHolder(config_path, overrides)
     checks = preflight(holder.config, config_path)
     checks.raise_first_error(config_path)
     for warning in checks.warnings:

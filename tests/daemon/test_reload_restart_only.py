@@ -17,7 +17,7 @@ import yaml
 from chair_helpers import Chair, FreeFloor
 from test_stale_command_fault import DT, ride
 
-from omnid.daemon.config import ConfigHolder
+from omnid.daemon.config import ConfigHolder, restart_only_refusal
 from omnid.daemon.core import ControlCore
 from omnid.daemon.run import Daemon
 from omnid.devices.joystick import JoystickReading
@@ -100,6 +100,9 @@ def test_after_a_stall_the_unit_braked_through_the_chair_starts_from_rest_after_
             {"control_unit": {"rs485": {"rts_level_for_tx": True}}},
             "control_unit.rs485",
         ),
+        # the recorder and its live view are opened at start: "reloaded" kept the old ones
+        ({"record": {"max_file_mb": 64.0}}, "record.max_file_mb"),
+        ({"record": {"view": "127.0.0.1:8770"}}, "record.view"),
     ],
     ids=lambda v: v if isinstance(v, str) else None,
 )
@@ -158,3 +161,26 @@ def test_a_reloaded_speed_window_reaches_the_kept_odometry(tmp_path):
     )
     ride(d.core, chair, 2.0, 2.3, 1.0)  # and goes on from where it was (no jump)
     assert 0.0 < d.core.odometry.pose[0] - pose[0] < 0.3 * 260.0
+
+
+def test_the_command_lines_recording_outlives_a_reload_and_is_no_change(tmp_path):
+    """``omnid run --record FILE`` overrides ``record.path``: a reload is compared with the
+    override applied to the new file too, so it neither counts as a change of the
+    restart-only ``record`` section (every reload refused) nor drops the override."""
+    import dataclasses
+
+    path = tmp_path / "omnid.yaml"
+    path.write_text(yaml.safe_dump(merged({})))
+
+    def cli(cfg):
+        return dataclasses.replace(cfg, record=dataclasses.replace(cfg.record, path="ride.mcap"))
+
+    holder = ConfigHolder(path, cli)
+    assert holder.config.record.path == "ride.mcap"
+    path.write_text(yaml.safe_dump(merged({"safety": {"margin_mm": 80.0}})))
+    assert holder.reload(check=restart_only_refusal) == (True, "reloaded")
+    assert holder.config.record.path == "ride.mcap" and holder.config.safety.margin_mm == 80.0
+    path.write_text(yaml.safe_dump(merged({"record": {"max_file_mb": 64.0}})))
+    ok, why = holder.reload(check=restart_only_refusal)
+    assert not ok and "record.max_file_mb" in why
+    assert holder.config.record.max_file_mb == 256.0 and holder.config.safety.margin_mm == 80.0
